@@ -1,0 +1,172 @@
+"""``rasterize``: Gaussians + camera (+ optional feature channels) in, images out.
+
+The render core knows nothing of time, physics or datasets. Extra per-Gaussian feature channels [N, C] are
+composited with the same weights as colour in the same pass (later: Gaussian flow and velocity flow).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from pidg.render.camera import Camera
+from pidg.render.projection import project_gaussians
+from pidg.render.sh import sh_to_rgb
+
+Backend = Literal["auto", "cpu", "torch", "gsplat"]
+TILE_SIZE = 16
+
+
+@dataclass
+class RenderOutput:
+    """Images [H, W, ...] and the per-Gaussian projection results densification needs."""
+
+    rgb: Tensor  # [H, W, 3], background included
+    alpha: Tensor  # [H, W] accumulated opacity
+    depth: Tensor  # [H, W] alpha-composited camera depth, sum_i w_i z_i (0 where nothing is drawn)
+    features: Tensor | None  # [H, W, C] extra channels composited with the same weights (no background)
+    means2d: Tensor  # [N, 2] pixel coordinates; its .grad after backward is the view-space positional gradient
+    radii: Tensor  # [N, 2] int32 pixel half-extents, 0 for culled Gaussians
+    depths: Tensor  # [N] camera-space z of the centres
+
+    @property
+    def visible(self) -> Tensor:
+        """[N] bool: Gaussians that touch the image."""
+        return (self.radii > 0).all(dim=-1)
+
+    def depth_normalized(self, eps: float = 1e-6) -> Tensor:
+        """Expected depth given that something was hit: depth / alpha (0 where alpha < eps)."""
+        return torch.where(self.alpha > eps, self.depth / self.alpha.clamp_min(eps), torch.zeros_like(self.depth))
+
+
+def _check_inputs(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, features: Tensor | None,
+    background: Tensor | None, sh_degree: int | None, camera: Camera,
+) -> None:
+    """Fail early, with the name of the offending input, on the mistakes that otherwise give garbage images."""
+    named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors}
+    if features is not None:
+        named["features"] = features
+    for name, t in named.items():
+        if not isinstance(t, Tensor):
+            raise TypeError(f"rasterize: {name} must be a torch.Tensor, got {type(t).__name__}")
+    if means.dim() != 2 or means.shape[1] != 3:
+        raise ValueError(f"rasterize: means must have shape [N, 3], got {list(means.shape)}")
+    n = means.shape[0]
+    expected = {"quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
+    for name, shape in expected.items():
+        if tuple(named[name].shape) != shape:
+            raise ValueError(f"rasterize: {name} must have shape {list(shape)}, got {list(named[name].shape)}")
+    if sh_degree is None:
+        if tuple(colors.shape) != (n, 3):
+            raise ValueError(f"rasterize: colors must be RGB [N, 3] = [{n}, 3] (or SH [N, K, 3] with sh_degree), got {list(colors.shape)}")
+    else:
+        if colors.dim() != 3 or colors.shape[0] != n or colors.shape[2] != 3 or colors.shape[1] < (sh_degree + 1) ** 2:
+            raise ValueError(
+                f"rasterize: with sh_degree={sh_degree} colors must be SH coefficients [N, K>={(sh_degree + 1) ** 2}, 3],"
+                f" got {list(colors.shape)}"
+            )
+    if features is not None and (features.dim() != 2 or features.shape[0] != n):
+        raise ValueError(f"rasterize: features must have shape [N, C] = [{n}, C], got {list(features.shape)}")
+    dtype, device = means.dtype, means.device
+    if dtype not in (torch.float32, torch.float64):
+        raise TypeError(f"rasterize: means must be float32 or float64, got {dtype}")
+    for name, t in named.items():
+        if t.dtype != dtype:
+            raise TypeError(f"rasterize: {name} has dtype {t.dtype} but means has {dtype}; use one float dtype")
+        if t.device != device:
+            raise ValueError(f"rasterize: {name} is on {t.device} but means is on {device}")
+        if not torch.isfinite(t).all():
+            bad = (~torch.isfinite(t)).reshape(t.shape[0], -1).any(dim=1).nonzero()[:5].flatten().tolist() if t.numel() else []
+            raise ValueError(f"rasterize: {name} contains NaN or infinite values (first bad Gaussians: {bad})")
+    if (scales < 0).any():
+        raise ValueError("rasterize: scales must be non-negative (pass log_scales= for log-space scales)")
+    if (quats.norm(dim=-1) == 0).any():
+        raise ValueError("rasterize: a quaternion has zero norm")
+    if background is not None and (tuple(background.shape) != (3,) or not torch.isfinite(background).all()):
+        raise ValueError(f"rasterize: background must be a finite RGB tensor of shape [3], got {list(background.shape)}")
+
+
+def resolve_backend(backend: Backend, device: torch.device) -> Literal["cpu", "torch", "gsplat"]:
+    """Pick the backend: gsplat for CUDA tensors, the numba kernel on CPU, the torch reference on request."""
+    if backend == "auto":
+        return "gsplat" if device.type == "cuda" else "cpu"
+    if backend in ("cpu", "torch") and device.type != "cpu":
+        raise ValueError(f"rasterize: backend '{backend}' runs on CPU tensors, got tensors on {device}")
+    if backend == "gsplat" and device.type != "cuda":
+        raise ValueError("rasterize: the gsplat backend needs CUDA tensors")
+    if backend not in ("cpu", "torch", "gsplat"):
+        raise ValueError(f"rasterize: unknown backend '{backend}' (auto, cpu, torch, gsplat)")
+    return backend
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    camera: Camera,
+    *,
+    scales: Tensor | None = None,
+    log_scales: Tensor | None = None,
+    features: Tensor | None = None,
+    background: Tensor | None = None,
+    sh_degree: int | None = None,
+    backend: Backend = "auto",
+    tile_size: int = TILE_SIZE,
+) -> RenderOutput:
+    """Render N Gaussians into one camera.
+
+    Args:
+        means [N, 3], quats [N, 4] (w, x, y, z; need not be normalised), opacities [N] in [0, 1].
+        scales [N, 3] (linear) or log_scales [N, 3]: exactly one of the two.
+        colors: RGB [N, 3], or SH coefficients [N, K, 3] together with ``sh_degree`` (0..3).
+        features: optional extra channels [N, C]; cost is linear in C and negligible for C = 0.
+        background: RGB [3] composited behind the Gaussians (default black).
+        backend: "cpu" (numba kernel), "torch" (reference), "gsplat" (CUDA), or "auto".
+    """
+    if (scales is None) == (log_scales is None):
+        raise ValueError("rasterize: pass exactly one of scales= or log_scales=")
+    if isinstance(opacities, Tensor) and opacities.dim() == 2 and opacities.shape[-1] == 1:
+        opacities = opacities.squeeze(-1)
+    lin_scales = scales if scales is not None else torch.exp(log_scales)  # type: ignore[arg-type]
+    _check_inputs(means, quats, lin_scales, opacities, colors, features, background, sh_degree, camera)
+    which = resolve_backend(backend, means.device)
+    camera = camera.to(means.device)
+    bg = background.to(means.dtype) if background is not None else means.new_zeros(3)
+
+    if sh_degree is not None:
+        rgb_per_gaussian = sh_to_rgb(colors, means - camera.camera_center.to(means.dtype), sh_degree)
+    else:
+        rgb_per_gaussian = colors
+
+    if which == "gsplat":
+        from pidg.render.rasterize_gsplat import rasterize_gsplat
+
+        return rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
+
+    proj = project_gaussians(means, quats, lin_scales, opacities, camera)
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    n_feat = 0 if features is None else features.shape[1]
+    channels = [rgb_per_gaussian, proj.depths.unsqueeze(-1)] + ([features] if features is not None else [])
+    per_gaussian = torch.cat(channels, dim=-1)  # [N, 3 + 1 + C]: colour, depth and features in one pass
+    if which == "cpu":
+        from pidg.render.rasterize_cpu import composite_cpu as composite
+    else:
+        from pidg.render.rasterize_torch import composite_reference as composite
+    image, alpha = composite(
+        proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size
+    )
+    rgb = image[..., :3] + (1.0 - alpha).unsqueeze(-1) * bg
+    return RenderOutput(
+        rgb=rgb,
+        alpha=alpha,
+        depth=image[..., 3],
+        features=image[..., 4 : 4 + n_feat] if n_feat else None,
+        means2d=proj.means2d,
+        radii=proj.radii,
+        depths=proj.depths,
+    )

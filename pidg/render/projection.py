@@ -1,0 +1,135 @@
+"""EWA projection of 3D Gaussians to screen-space 2D Gaussians, differentiable through torch autograd.
+
+Kept separate from compositing (as in gsplat): projection is cheap per-Gaussian arithmetic where autograd is
+fast enough and easy to trust; compositing is the per-pixel hot loop that needs a kernel.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from pidg.render.camera import Camera
+
+ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS convention)
+ALPHA_MAX = 0.99  # per-Gaussian alpha is clamped to this so transmittance never reaches zero
+TRANSMITTANCE_MIN = 1e-4  # a pixel stops compositing once its transmittance would fall below this
+EPS2D = 0.3  # low-pass dilation (pixels^2) added to every 2D covariance
+FRUSTUM_MARGIN = 1.3  # J is evaluated with x/z, y/z clamped to 1.3x the half field of view (3DGS, gsplat)
+
+
+@dataclass
+class Projection:
+    """Per-Gaussian screen-space quantities. Rows of culled Gaussians hold finite dummies and ``radii == 0``."""
+
+    means2d: Tensor  # [N, 2] pixel coordinates (pixel centres at integer + 0.5), differentiable
+    conics: Tensor  # [N, 3] upper triangle (a, b, c) of the inverse 2D covariance, differentiable
+    depths: Tensor  # [N] camera-space z, differentiable
+    radii: Tensor  # [N, 2] int32 half-extent in pixels of the region where alpha >= 1/255 (0 = culled)
+    cov2d: Tensor  # [N, 3] upper triangle of the (dilated) 2D covariance, differentiable
+
+    @property
+    def visible(self) -> Tensor:
+        return (self.radii > 0).all(dim=-1)
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices [N, 3, 3] from quaternions [N, 4] in (w, x, y, z) order; normalised here."""
+    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(quats.shape[:-1] + (3, 3))
+
+
+def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
+    """World-space covariance R S S^T R^T [N, 3, 3] from quaternions and (linear) scales."""
+    m = quat_to_rotmat(quats) * scales.unsqueeze(-2)
+    return m @ m.transpose(-1, -2)
+
+
+def project_gaussians(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    camera: Camera,
+    eps2d: float = EPS2D,
+) -> Projection:
+    """Project Gaussians through a pinhole camera with the EWA local affine approximation.
+
+    Culled (radius 0): centre outside (near, far), opacity below 1/255, or footprint entirely off-screen.
+    The radius is the exact half-extent of the ellipse where ``opacity * exp(-d^2/2) >= 1/255`` (per axis), so
+    tiling never drops a contribution that compositing would keep: results do not depend on the tile size.
+    """
+    dtype = means.dtype
+    w2c = camera.world_to_camera.to(device=means.device, dtype=dtype)
+    rot, trans = w2c[:3, :3], w2c[:3, 3]
+    p_cam = means @ rot.T + trans
+    x, y, z = p_cam.unbind(-1)
+
+    in_depth = (z > camera.near) & (z < camera.far)
+    z_safe = torch.where(in_depth, z, torch.ones_like(z))  # keeps culled rows finite (0*inf would poison grads)
+
+    # Clamp the tangent of the viewing angle for the Jacobian only: very oblique Gaussians otherwise explode.
+    lim_x_pos = (camera.width - camera.cx) / camera.fx + (FRUSTUM_MARGIN - 1.0) * 0.5 * camera.width / camera.fx
+    lim_x_neg = camera.cx / camera.fx + (FRUSTUM_MARGIN - 1.0) * 0.5 * camera.width / camera.fx
+    lim_y_pos = (camera.height - camera.cy) / camera.fy + (FRUSTUM_MARGIN - 1.0) * 0.5 * camera.height / camera.fy
+    lim_y_neg = camera.cy / camera.fy + (FRUSTUM_MARGIN - 1.0) * 0.5 * camera.height / camera.fy
+    tx = z_safe * torch.clamp(x / z_safe, -lim_x_neg, lim_x_pos)
+    ty = z_safe * torch.clamp(y / z_safe, -lim_y_neg, lim_y_pos)
+
+    zeros = torch.zeros_like(z)
+    inv_z = 1.0 / z_safe
+    jac = torch.stack(
+        [
+            camera.fx * inv_z, zeros, -camera.fx * tx * inv_z * inv_z,
+            zeros, camera.fy * inv_z, -camera.fy * ty * inv_z * inv_z,
+        ],
+        dim=-1,
+    ).reshape(-1, 2, 3)
+    cov_cam = rot @ covariance_3d(quats, scales) @ rot.T
+    cov2d_full = jac @ cov_cam @ jac.transpose(-1, -2)
+    a = cov2d_full[:, 0, 0] + eps2d
+    b = cov2d_full[:, 0, 1]
+    c = cov2d_full[:, 1, 1] + eps2d
+    det = a * c - b * b
+    det_ok = det > 0
+    det_safe = torch.where(det_ok, det, torch.ones_like(det))
+    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    means2d = torch.stack([camera.fx * x * inv_z + camera.cx, camera.fy * y * inv_z + camera.cy], dim=-1)
+
+    with torch.no_grad():
+        opac = opacities.detach()
+        keep = in_depth & det_ok & (opac > ALPHA_MIN) & torch.isfinite(means2d).all(-1)
+        # squared Mahalanobis radius where opacity * exp(-r^2/2) = 1/255; tiny margin against rounding
+        r2 = (2.0 * torch.log(opac.clamp_min(ALPHA_MIN) / ALPHA_MIN)).clamp_min(0.0) * (1.0 + 1e-4)
+        half = torch.stack([torch.sqrt(r2 * a.clamp_min(0)), torch.sqrt(r2 * c.clamp_min(0))], dim=-1)
+        m2 = means2d.detach()
+        on_screen = (
+            (m2[:, 0] + half[:, 0] > 0)
+            & (m2[:, 0] - half[:, 0] < camera.width)
+            & (m2[:, 1] + half[:, 1] > 0)
+            & (m2[:, 1] - half[:, 1] < camera.height)
+        )
+        keep = keep & on_screen & (half > 0).all(-1)
+        radii = torch.where(keep.unsqueeze(-1), torch.ceil(half).clamp_max(2**30), torch.zeros_like(half))
+        radii = radii.to(torch.int32)
+    return Projection(
+        means2d=means2d,
+        conics=conics,
+        depths=z,
+        radii=radii,
+        cov2d=torch.stack([a, b, c], dim=-1),
+    )
+
+
+def tile_grid(width: int, height: int, tile_size: int) -> tuple[int, int]:
+    """Number of tiles along x and y."""
+    return math.ceil(width / tile_size), math.ceil(height / tile_size)
