@@ -104,7 +104,9 @@ def test_empty_and_single(n):
         assert t.grad is not None and t.grad.shape == t.shape and torch.isfinite(t.grad).all()
 
 
-@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-4), (torch.float64, 1e-9)])
+# The kernel computes in float32 (like gsplat) whatever the input dtype; the float64 case checks that only
+# float32 rounding separates it from the exact reference.
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-4), (torch.float64, 1e-5)])
 @pytest.mark.parametrize("sh_degree", [None, 3])
 def test_gradients_match_reference(dtype, tol, sh_degree):
     camera = CAMERAS["wide"]()
