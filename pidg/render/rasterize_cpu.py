@@ -144,8 +144,10 @@ def _pow2_table():  # pragma: no cover - compiled
 
 
 # Per-tile Gaussian table columns (float32): centre x relative to the tile's first column, centre y, conic
-# a, b, c, opacity, log-alpha threshold, and the rows [y_lo, y_hi] the alpha >= 1/255 ellipse can reach.
-_MX, _MY, _CA, _CB, _CC, _OP, _TH, _YLO, _YHI = range(9)
+# a, b, c, opacity, log-alpha threshold, the rows [y_lo, y_hi] the alpha >= 1/255 ellipse can reach, and
+# 1/a, b/a, det/a for the per-row cull (divisions hoisted out of the row loop).
+_MX, _MY, _CA, _CB, _CC, _OP, _TH, _YLO, _YHI, _INV_A, _B_OVER_A, _DET_OVER_A = range(12)
+_N_COLS = 12
 
 
 @njit(cache=True, inline="always")
@@ -172,6 +174,9 @@ def _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, table,
         table[k, _TH] = threshold
         table[k, _YLO] = means2d[g, 1] - reach_y
         table[k, _YHI] = means2d[g, 1] + reach_y
+        table[k, _INV_A] = 1.0 / a
+        table[k, _B_OVER_A] = b / a
+        table[k, _DET_OVER_A] = det / a
         for d in range(dim):
             tfeat[k, d] = feats[g, d]
 
@@ -182,11 +187,10 @@ def _row_misses(table, k, pyc, n_lanes):  # pragma: no cover - compiled
 
     Written with a single return and no early exits: the branchy form made the caller's lane loops 2.5x slower.
     """
-    a, b, c = table[k, _CA], table[k, _CB], table[k, _CC]
     dy = table[k, _MY] - pyc
-    reach = max(f32(-0.5) * dy * dy * (c - b * b / a) - table[k, _TH], f32(0.0))
-    half_width = math.sqrt(f32(2.0) * reach / a) + f32(1e-3)
-    centre = table[k, _MX] + b * dy / a  # the row's maximum of the Gaussian, in tile-local pixel units
+    reach = max(f32(-0.5) * dy * dy * table[k, _DET_OVER_A] - table[k, _TH], f32(0.0))
+    half_width = math.sqrt(f32(2.0) * reach * table[k, _INV_A]) + f32(1e-3)
+    centre = table[k, _MX] + table[k, _B_OVER_A] * dy  # the row's maximum of the Gaussian, tile-local pixels
     outside_x = (centre + half_width < f32(0.5)) | (centre - half_width > f32(n_lanes) - f32(0.5))
     return (pyc < table[k, _YLO]) | (pyc > table[k, _YHI]) | (reach <= f32(0.0)) | outside_x
 
@@ -205,7 +209,7 @@ def _forward_tiles(
         x_lo, y_lo = tx * tile_size, ty * tile_size
         x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
         n_lanes = x_hi - x_lo
-        table = np.empty((end - start, 9), dtype=np.float32)
+        table = np.empty((end - start, _N_COLS), dtype=np.float32)
         tfeat = np.empty((end - start, dim), dtype=np.float32)
         _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, table, tfeat)
         trans = np.empty(LANES, dtype=np.float32)
@@ -276,7 +280,7 @@ def _backward_tiles(
         x_lo, y_lo = tx * tile_size, ty * tile_size
         x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
         n_lanes = x_hi - x_lo
-        table = np.empty((end - start, 9), dtype=np.float32)
+        table = np.empty((end - start, _N_COLS), dtype=np.float32)
         tfeat = np.empty((end - start, dim), dtype=np.float32)
         _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, table, tfeat)
         # per-lane gradient sums, reduced over lanes once per tile (lane loops then need no float reduction)
