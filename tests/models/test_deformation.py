@@ -1,0 +1,271 @@
+"""Deformation models: the shared interface (Grid4D, the MLP baseline, identity) and Grid4D's specifics."""
+import dataclasses
+import json
+import math
+
+import pytest
+import torch
+
+from pidg.models.deformation import (
+    GROUP_GRID,
+    GROUP_MLP,
+    Bounds,
+    DeformationConfig,
+    DeformationModel,
+    Grid4D,
+    Grid4DConfig,
+    HashGridConfig,
+    IdentityDeformationConfig,
+    MLPDeformationConfig,
+    IdentityDeformation,
+    MLPDeformation,
+    as_bounds,
+    build_deformation,
+    quat_multiply,
+    quat_rotate,
+)
+from pidg.render.projection import quat_to_rotmat
+
+BOUNDS = Bounds(centre=(0.5, -1.0, 2.0), half_extent=(2.0, 2.0, 2.0))
+SMALL_GRID4D = Grid4DConfig(
+    spatial_grid=HashGridConfig(n_levels=4, n_features=2, log2_table_size=12, base_resolution=4, finest_resolution=64),
+    temporal_grid=HashGridConfig(n_levels=4, n_features=2, log2_table_size=12, base_resolution=(4, 4, 4), finest_resolution=(16, 16, 8)),
+    width=32,
+    decoder_depth=1,
+)
+SMALL_MLP = MLPDeformationConfig(depth=4, width=32, skips=(1,))
+CONFIGS = {"grid4d": SMALL_GRID4D, "mlp": SMALL_MLP, "identity": IdentityDeformationConfig()}
+
+
+def canonical(n: int = 300, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    centre, half = torch.tensor(BOUNDS.centre), torch.tensor(BOUNDS.half_extent)
+    means = centre + (torch.rand(n, 3, generator=gen) * 2 - 1) * half * 0.9
+    quats = torch.randn(n, 4, generator=gen)
+    log_scales = torch.randn(n, 3, generator=gen) - 3
+    return means, quats, log_scales
+
+
+def randomize_heads(model: torch.nn.Module, scale: float = 0.05, seed: int = 1) -> None:
+    """Move the zero-initialised output layers so that the deformation is no longer the identity."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if name.startswith("head_"):
+                p.copy_(torch.randn(p.shape, generator=gen) * scale)
+
+
+@pytest.mark.parametrize("kind", list(CONFIGS))
+def test_identity_at_initialisation(kind):
+    model = build_deformation(CONFIGS[kind], BOUNDS)
+    assert isinstance(model, DeformationModel)
+    means, quats, log_scales = canonical()
+    for t in (0.0, 0.37, torch.rand(len(means))):
+        out = model(means, quats, log_scales, t)
+        assert torch.equal(out.means, means) and torch.equal(out.quats, quats) and torch.equal(out.log_scales, log_scales)
+
+
+@pytest.mark.parametrize("kind", list(CONFIGS))
+def test_shapes_and_interface(kind):
+    model = build_deformation(CONFIGS[kind], BOUNDS)
+    randomize_heads(model)
+    means, quats, log_scales = canonical(50)
+    out = model(means, quats, log_scales, torch.full((50,), 0.5))
+    assert out.means.shape == (50, 3) and out.quats.shape == (50, 4) and out.log_scales.shape == (50, 3)
+    assert out.means.dtype == torch.float32
+    reg = model.regularization_loss()
+    assert reg.dim() == 0 and torch.isfinite(reg)
+    groups = model.parameter_groups()
+    assert set(groups) <= {GROUP_GRID, GROUP_MLP}
+    listed = [id(p) for ps in groups.values() for p in ps]
+    assert sorted(listed) == sorted(id(p) for p in model.parameters())  # every parameter exactly once
+    with pytest.raises(ValueError):
+        model(means, quats, log_scales, torch.zeros(7))
+    assert model(means, quats, log_scales, torch.zeros(50, 1)).means.shape == (50, 3)
+    empty = model(means[:0], quats[:0], log_scales[:0], 0.5)
+    assert empty.means.shape == (0, 3) and empty.quats.shape == (0, 4)
+
+
+@pytest.mark.parametrize("kind", ["grid4d", "mlp"])
+def test_static_rows_are_untouched(kind):
+    model = build_deformation(CONFIGS[kind], BOUNDS)
+    randomize_heads(model)
+    means, quats, log_scales = canonical()
+    means.requires_grad_(True)
+    static = torch.zeros(len(means), dtype=torch.bool)
+    static[::3] = True
+    out = model(means, quats, log_scales, 0.6, static_mask=static)
+    assert torch.equal(out.means[static], means[static]) and torch.equal(out.quats[static], quats[static])
+    assert torch.equal(out.log_scales[static], log_scales[static])
+    full = model(means, quats, log_scales, 0.6)
+    assert (out.means[~static] - full.means[~static]).abs().max() < 1e-6  # dynamic rows as without a mask
+    assert (full.means[~static] - means[~static]).abs().max() > 1e-3  # ... and those do move
+    out.means.sum().backward()
+    assert torch.equal(means.grad[static], torch.ones(int(static.sum()), 3))  # identity for static rows
+    all_static = model(means, quats, log_scales, 0.6, static_mask=torch.ones(len(means), dtype=torch.bool))
+    assert all_static.means is means
+
+
+@pytest.mark.parametrize("kind", ["grid4d", "mlp"])
+def test_gradients_reach_every_parameter(kind):
+    model = build_deformation(CONFIGS[kind], BOUNDS)
+    means, quats, log_scales = canonical()
+    target = torch.randn(len(means), 3)
+
+    def step_loss(regularize: bool = True):
+        out = model(means, quats, log_scales, 0.3)
+        loss = (out.means * target).sum() + out.quats.square().sum() + out.log_scales.sum()
+        return loss + model.regularization_loss() if regularize else loss
+
+    # zero-initialised heads: the first backward of a rendering-type loss reaches only them ...
+    step_loss(regularize=False).backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None, name
+        assert (p.grad.abs().max() > 0) == name.startswith("head_"), name
+    # ... and after one optimiser step every parameter group receives gradients
+    optimizers = [torch.optim.Adam(ps, lr=1e-2) for ps in model.parameter_groups().values()]
+    for opt in optimizers:
+        opt.step()
+        opt.zero_grad()
+    step_loss().backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and p.grad.abs().max() > 0, name
+
+
+def test_grid4d_parameter_groups_split_grids_from_networks():
+    model = Grid4D(SMALL_GRID4D, BOUNDS)
+    groups = model.parameter_groups()
+    assert {id(p) for p in groups[GROUP_GRID]} == {id(g.table) for g in (model.grid_xyz, model.grid_xyt, model.grid_yzt, model.grid_xzt)}
+    assert len(groups[GROUP_MLP]) == 2 + 2 + 2 + 6  # f_s, f_t, one decoder layer, three heads
+
+
+def test_grid4d_time_and_space_mapping():
+    model = Grid4D(SMALL_GRID4D, BOUNDS)
+    corners = torch.tensor([[-1.5, -3.0, 0.0], [2.5, 1.0, 4.0]])  # the box's min and max corners
+    u, ut = model.grid_coordinates(corners, torch.tensor([0.0, 1.0]))
+    assert torch.allclose(u, torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
+    assert torch.allclose(ut, torch.tensor([0.05, 0.95]))  # t' in [-0.9 b, 0.9 b] -> [0.05, 0.95]
+
+
+def test_grid4d_warp_convention():
+    """A hand-set warp: mu' = c + R (mu - c) + half_extent * T, q' = q_x * q, log s' = log s + ds."""
+    model = Grid4D(dataclasses.replace(SMALL_GRID4D, decoder_depth=0), BOUNDS)
+    angle = 0.3
+    q_x = torch.tensor([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])  # rotation about z
+    shift = torch.tensor([0.1, -0.2, 0.05])
+    with torch.no_grad():
+        model.head_warp.bias.copy_(torch.cat([q_x - torch.tensor([1.0, 0, 0, 0]), shift]))
+        model.head_scale.bias.fill_(0.25)
+    means, quats, log_scales = canonical(20)
+    out = model(means, quats, log_scales, 0.5)
+    centre, half = torch.tensor(BOUNDS.centre), torch.tensor(BOUNDS.half_extent)
+    expected = centre + (means - centre) @ quat_to_rotmat(q_x[None])[0].T + half * shift
+    assert torch.allclose(out.means, expected, atol=1e-5)
+    assert torch.allclose(out.quats, quat_multiply(q_x.expand(20, 4), quats), atol=1e-6)
+    assert torch.allclose(out.log_scales, log_scales + 0.25)
+    frozen = Grid4D(dataclasses.replace(SMALL_GRID4D, decoder_depth=0, rotate_with_warp=False), BOUNDS)
+    frozen.load_state_dict(model.state_dict())
+    assert torch.allclose(frozen(means, quats, log_scales, 0.5).quats, quats)
+
+
+def test_quaternion_helpers_agree_with_the_renderer():
+    gen = torch.Generator().manual_seed(0)
+    a, b = torch.nn.functional.normalize(torch.randn(10, 4, generator=gen), dim=-1), torch.randn(10, 4, generator=gen)
+    v = torch.randn(10, 3, generator=gen)
+    ra, rab = quat_to_rotmat(a), quat_to_rotmat(quat_multiply(a, b))
+    assert torch.allclose(rab, ra @ quat_to_rotmat(b), atol=1e-5)  # a * b rotates by b first, then a
+    assert torch.allclose(quat_rotate(a, v), (ra @ v[..., None])[..., 0], atol=1e-5)
+
+
+def test_grid4d_regularizer():
+    model = Grid4D(SMALL_GRID4D, BOUNDS)
+    means, quats, log_scales = canonical()
+    with torch.no_grad():
+        for grid in (model.grid_xyz, model.grid_xyt, model.grid_yzt, model.grid_xzt):
+            grid.table.fill_(0.7)  # a constant field: perturbing the coordinates changes nothing
+    model(means, quats, log_scales, 0.4)
+    assert float(model.regularization_loss().detach()) < 1e-12  # zero up to float32 rounding of the weights
+    with torch.no_grad():
+        for grid in (model.grid_xyz, model.grid_xyt, model.grid_yzt, model.grid_xzt):
+            grid.table.copy_(torch.randn(grid.table.shape))
+    model(means, quats, log_scales, 0.4)
+    loss = model.regularization_loss()
+    assert float(loss.detach()) > 0
+    loss.backward()
+    assert model.grid_xyz.table.grad.abs().max() > 0 and model.grid_xzt.table.grad.abs().max() > 0
+    assert float(model.regularization_loss()) == 0.0  # the sample was consumed
+    model.eval()
+    model(means, quats, log_scales, 0.4)
+    assert float(model.regularization_loss()) == 0.0  # nothing is sampled outside training
+
+
+def test_grid4d_attention_cache_at_render_time():
+    model = Grid4D(SMALL_GRID4D, BOUNDS)
+    randomize_heads(model)
+    with torch.no_grad():
+        model.grid_xyz.table.copy_(torch.randn(model.grid_xyz.table.shape))
+    means, quats, log_scales = canonical()
+    calls = []
+    original = model.encode_spatial
+    model.encode_spatial = lambda u: (calls.append(1), original(u))[1]  # type: ignore[method-assign]
+    reference = [model(means, quats, log_scales, t).means for t in (0.2, 0.8)]
+    with torch.no_grad():
+        cached = [model(means, quats, log_scales, t).means for t in (0.2, 0.8)]
+        assert len(calls) == 3  # two with autograd, then one for both frames
+        assert all(torch.equal(a, b) for a, b in zip(reference, cached))
+        model.grid_xyz.table.mul_(2.0)  # a parameter update invalidates the cache
+        model(means, quats, log_scales, 0.2)
+        assert len(calls) == 4
+        model(means + 0.01, quats, log_scales, 0.2)  # so do new positions
+        assert len(calls) == 5
+
+
+def test_grid4d_float64_uses_the_reference():
+    model = Grid4D(SMALL_GRID4D, BOUNDS).double()
+    randomize_heads(model)
+    means, quats, log_scales = (x.double() for x in canonical(30))
+    out = model(means, quats, log_scales, 0.5)
+    assert out.means.dtype == torch.float64
+    out32 = Grid4D(SMALL_GRID4D, BOUNDS)
+    out32.load_state_dict({k: v.float() for k, v in model.state_dict().items()})
+    assert (out32(means.float(), quats.float(), log_scales.float(), 0.5).means - out.means).abs().max() < 1e-4
+
+
+def test_run_config_selects_the_model_and_round_trips():
+    assert isinstance(build_deformation(DeformationConfig()), Grid4D)  # the default is the paper's model
+    config = DeformationConfig(kind="mlp", grid4d=SMALL_GRID4D, mlp=SMALL_MLP)
+    assert isinstance(build_deformation(config, BOUNDS), MLPDeformation)
+    assert isinstance(build_deformation(dataclasses.replace(config, kind="identity")), IdentityDeformation)
+    restored = DeformationConfig.from_dict(json.loads(json.dumps(dataclasses.asdict(config))))
+    assert restored == config
+    with pytest.raises(ValueError):
+        DeformationConfig(kind="nope")  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        DeformationConfig.from_dict({"kind": "mlp", "depth": 3})
+
+
+def test_bounds_from_what_the_trainer_has():
+    from pidg.data.scene import SceneBounds
+
+    with_points = SceneBounds(torch.zeros(3), 10.0, torch.tensor([-1.0, -1.0, 0.0]), torch.tensor([1.0, 3.0, 1.0]))
+    box = as_bounds(with_points, margin=0.0)
+    assert box.centre == (0.0, 1.0, 0.5) and box.half_extent == (2.0, 2.0, 2.0)
+    cameras_only = as_bounds(SceneBounds(torch.tensor([1.0, 2.0, 3.0]), 4.0))
+    assert cameras_only.centre == (1.0, 2.0, 3.0) and cameras_only.half_extent == (4.0, 4.0, 4.0)
+    model = build_deformation(SMALL_GRID4D, torch.tensor([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]]))
+    assert torch.allclose(model.normalize.centre, torch.ones(3)) and torch.allclose(model.normalize.half_extent, torch.full((3,), 1.1))
+
+
+def test_state_dict_carries_the_bounds():
+    model = Grid4D(SMALL_GRID4D, BOUNDS)
+    fresh = Grid4D(SMALL_GRID4D)
+    fresh.load_state_dict(model.state_dict())
+    assert torch.equal(fresh.normalize.centre, torch.tensor(BOUNDS.centre))
+
+
+def test_bounds_from_points():
+    pts = torch.tensor([[0.0, 0.0, 0.0], [2.0, 1.0, 4.0]])
+    box = Bounds.from_points(pts, margin=0.0, cube=False)
+    assert box.centre == (1.0, 0.5, 2.0) and box.half_extent == (1.0, 0.5, 2.0)
+    cube = Bounds.from_points(pts, margin=0.1)
+    assert cube.half_extent == pytest.approx((2.2, 2.2, 2.2))
