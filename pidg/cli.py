@@ -4,14 +4,63 @@ from __future__ import annotations
 from pidg import _env  # noqa: F401  (must precede torch)
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from pidg.demo import run_render_demo
+def _train_config(args: argparse.Namespace):
+    from pidg.config_tools import apply_overrides, load_config, overrides_from_args
+    from pidg.training.config import TrainConfig
 
-    run_render_demo(Path(args.out), size=args.size, n_views=args.views)
+    base = load_config(TrainConfig, Path(args.config)) if getattr(args, "config", None) else TrainConfig()
+    return apply_overrides(base, overrides_from_args(args))
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from pidg.data import load_scene
+    from pidg.training.trainer import Trainer
+
+    config = _train_config(args)
+    if not str(config.data.path):
+        raise SystemExit("pidg train: give the dataset folder with --data.path DIR")
+    scene = load_scene(config.data)
+    checkpoint = Path(config.output.dir) / "checkpoint.pt"
+    if args.resume:
+        if not checkpoint.is_file():
+            raise SystemExit(f"pidg train --resume: no checkpoint at {checkpoint}")
+        trainer = Trainer.from_checkpoint(checkpoint, scene, config)
+        print(f"resuming from step {trainer.step} ({checkpoint})")
+    else:
+        trainer = Trainer(config, scene)
+    summary = trainer.train()
+    print(f"trained {summary['iterations']} iterations in {summary['train_minutes']:.1f} min "
+          f"({summary['iterations_per_second']:.2f} it/s), {summary['gaussians']} Gaussians -> {config.output.dir}")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from pidg.pipeline import evaluate_run
+
+    result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(args.lpips))
+    mean = result["mean"]
+    print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
+    return 0
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from pidg.pipeline import render_run
+
+    paths = render_run(Path(args.run), split=args.split, fps=args.fps)
+    for p in paths:
+        print(f"wrote {p}")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from pidg.pipeline import run_demo
+
+    run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes)
     return 0
 
 
@@ -27,14 +76,43 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_quality(args: argparse.Namespace) -> int:
+    from pidg.evaluation.bench_quality import run_quality_bench
+
+    base = _train_config(args)
+    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), base, args.downscale, args.minutes)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from pidg.config_tools import add_config_arguments
+    from pidg.training.config import TrainConfig
+
     parser = argparse.ArgumentParser(prog="pidg", description="Physics-Informed Deformable Gaussian Splatting")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="render the embedded demo scene (no download needed)")
+    train = sub.add_parser("train", help="train on a dataset folder (D-NeRF, PIDG/BlenderNeRF, HyperNeRF)")
+    train.add_argument("--config", help="a config.json to start from (e.g. one written by an earlier run)")
+    train.add_argument("--resume", action="store_true", help="continue from OUTPUT.DIR/checkpoint.pt")
+    add_config_arguments(train, TrainConfig)
+    train.set_defaults(func=_cmd_train)
+
+    ev = sub.add_parser("eval", help="metrics of a trained run on a split (JSON in RUN/eval_SPLIT)")
+    ev.add_argument("run", help="the run's output folder")
+    ev.add_argument("--split", default="test")
+    ev.add_argument("--lpips", nargs="*", default=["alex", "vgg"], help="LPIPS backbones (none to skip)")
+    ev.set_defaults(func=_cmd_eval)
+
+    rd = sub.add_parser("render", help="videos and frames of a trained run: fixed view over time, test trajectory, depth")
+    rd.add_argument("run", help="the run's output folder")
+    rd.add_argument("--split", default="test")
+    rd.add_argument("--fps", type=int, default=24)
+    rd.set_defaults(func=_cmd_render)
+
+    demo = sub.add_parser("demo", help="train on the embedded procedural scene and write metrics, renders and a video")
     demo.add_argument("--out", default="outputs/demo", help="output folder")
-    demo.add_argument("--size", type=int, default=256, help="image side in pixels")
-    demo.add_argument("--views", type=int, default=8, help="number of orbit views")
+    demo.add_argument("--iterations", type=int, default=1200)
+    demo.add_argument("--minutes", type=float, default=5.0, help="training time budget (stops early, with a checkpoint)")
     demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks (not tests)")
@@ -44,10 +122,19 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--out", default="outputs/bench/render.json", help="JSON with all figures ('' for none)")
     render.add_argument("--quick", action="store_true", help="tiny cases, for a smoke test")
     render.set_defaults(func=_cmd_bench_render)
+    quality = bench_sub.add_parser("quality", help="train + evaluate several scenes with one budget; one table")
+    quality.add_argument("scenes", nargs="+", help="dataset folders")
+    quality.add_argument("--out", default="outputs/bench/quality")
+    quality.add_argument("--downscale", default=None, help="factor or WxH, e.g. 400x400")
+    quality.add_argument("--minutes", type=float, default=30.0, help="training time budget per scene")
+    quality.add_argument("--config", help="a config.json to start from")
+    add_config_arguments(quality, TrainConfig)
+    quality.set_defaults(func=_cmd_bench_quality)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
     return args.func(args)
 

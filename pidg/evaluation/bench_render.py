@@ -8,7 +8,8 @@ from __future__ import annotations
 import json
 import os
 import statistics
-import threading
+import subprocess
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -45,48 +46,48 @@ class RenderBenchConfig:
     seed: int = 0
 
 
-class PeakRSS:
-    """Peak resident memory above the level at entry, sampled every millisecond in a background thread.
+def _interleaved_medians(fns: dict[str, Callable[[], None]], repeats: dict[str, int]) -> dict[str, float]:
+    """Median wall time (s) of each function, measured round-robin after one warm-up call each.
 
-    torch's CPU allocations are invisible to tracemalloc, so the process RSS is the honest measure.
+    The machine's capacity changes from minute to minute; interleaving makes every function see the same mix,
+    so the ratios between them are meaningful even when the absolute times drift.
     """
-
-    def __init__(self) -> None:
-        self.peak = 0
-        self._stop = threading.Event()
-
-    @staticmethod
-    def _rss() -> int:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-    def __enter__(self) -> "PeakRSS":
-        self.base = self._rss()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-        return self
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.peak = max(self.peak, self._rss() - self.base)
-            time.sleep(0.001)
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, self._rss() - self.base)
+    for fn in fns.values():
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    rounds = max(repeats.values())
+    for r in range(rounds):
+        for name, fn in fns.items():
+            if r < repeats[name]:
+                t0 = time.perf_counter()
+                fn()
+                times[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(ts) for name, ts in times.items()}
 
 
-def _median_time(fn: Callable[[], None], repeats: int) -> tuple[float, int]:
-    """Median wall time (s) over ``repeats`` calls after one warm-up, and the peak RSS growth (bytes)."""
-    fn()
-    times = []
-    with PeakRSS() as mem:
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-    return statistics.median(times), mem.peak
+def _peak_memory_mb(n_gaussians: int, size: int, seed: int, backend: str) -> float:
+    """Peak RSS growth (MiB) over one forward+backward, sampled every 0.5 ms in a fresh process: torch
+    allocations are invisible to tracemalloc, and in a long-lived process freed memory is reused."""
+    code = (
+        "import os, threading, time, pidg, torch\n"
+        "from pidg.evaluation.bench_render import _render_fns\n"
+        "from pidg.render.scenes import orbit_camera, random_scene\n"
+        "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
+        "small = random_scene(50, orbit_camera(32, 32), seed=0)\n"
+        f"_render_fns(small, 32, '{backend}')[1]()  # load kernels before the baseline\n"
+        f"scene = random_scene({n_gaussians}, orbit_camera({size}, {size}), seed={seed})\n"
+        f"fwd, fwd_bwd = _render_fns(scene, {size}, '{backend}')\n"
+        "base, peak, done = rss(), [0], threading.Event()\n"
+        "def sample():\n"
+        "    while not done.is_set():\n"
+        "        peak[0] = max(peak[0], rss()); time.sleep(0.0005)\n"
+        "th = threading.Thread(target=sample); th.start(); fwd_bwd(); done.set(); th.join()\n"
+        "print((max(peak[0], rss()) - base) / 2**20)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        return float("nan")
+    return float(result.stdout.strip().splitlines()[-1])
 
 
 def _render_fns(scene: GaussianScene, size: int, backend: str) -> tuple[Callable[[], None], Callable[[], None]]:
@@ -145,60 +146,53 @@ def _pairs(scene: GaussianScene, size: int) -> tuple[int, int]:
 
 def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, log: Callable[[str], None] = print) -> dict:
     """Run every case and print a table; returns (and optionally writes) the figures as a dict."""
-    log("fwd, fwd+bwd: a whole rasterize() call (projection in torch autograd + compositing);"
-        " composite: binning + compositing forward + backward alone, the part the kernel implements")
+    log("fwd, fwd+bwd: a whole rasterize() call (projection in torch autograd + compositing).")
+    log("composite: binning + compositing forward + backward alone, on fixed projections: the part the kernel implements.")
+    log("Times are medians of interleaved repetitions; peak MB is the RSS growth of one fwd+bwd in a fresh process.")
     log(f"torch threads: {torch.get_num_threads()}, numba threads: {_numba_threads()}, "
         f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
-    rows = []
-    header = (f"{'case':<5}{'N':>8}{'px':>6}{'pairs':>12}{'backend':>9}{'fwd ms':>9}{'fwd+bwd ms':>12}{'peak MB':>9}"
-              f"{'composite f+b ms':>18}{'ratio ref/kernel: f+b':>23}{'composite':>11}")
+    header = (f"{'case':<5}{'N':>8}{'px':>6}{'pairs':>12}{'backend':>9}{'fwd ms':>9}{'fwd+bwd ms':>12}"
+              f"{'composite ms':>14}{'peak MB':>9}")
     log(header)
+    rows = []
     for case in config.cases:
         camera = orbit_camera(case.size, case.size)
         scene = random_scene(case.n_gaussians, camera, seed=config.seed)
         pairs, isects = _pairs(scene, case.size)
-        row = {"case": case.name, "n_gaussians": case.n_gaussians, "size": case.size, "pixel_gaussian_pairs": pairs, "intersections": isects}
-        for backend in ("cpu", "torch"):
-            if backend == "torch" and not case.run_reference:
-                row["torch"] = None
-                log(f"{case.name:<5}{case.n_gaussians:>8}{case.size:>6}{pairs:>12}{'torch':>9}   skipped (the reference is too slow at this size)")
-                continue
-            reps = config.repeats if backend == "cpu" else config.reference_repeats
+        row: dict = {"case": case.name, "n_gaussians": case.n_gaussians, "size": case.size, "pixel_gaussian_pairs": pairs, "intersections": isects}
+        backends = ["cpu", "torch"] if case.run_reference else ["cpu"]
+        fns, reps = {}, {}
+        for backend in backends:
             fwd, fwd_bwd = _render_fns(scene, case.size, backend)
-            t_fwd, _ = _median_time(fwd, reps)
-            t_fb, peak = _median_time(fwd_bwd, reps)
-            t_comp, _ = _median_time(_composite_fn(scene, case.size, backend), reps)
+            n = config.repeats if backend == "cpu" else config.reference_repeats
+            fns.update({f"{backend}/fwd": fwd, f"{backend}/fwd_bwd": fwd_bwd, f"{backend}/composite": _composite_fn(scene, case.size, backend)})
+            reps.update({f"{backend}/fwd": n, f"{backend}/fwd_bwd": n, f"{backend}/composite": n})
+        med = _interleaved_medians(fns, reps)
+        for backend in backends:
+            peak = _peak_memory_mb(case.n_gaussians, case.size, config.seed, backend)
             row[backend] = {
-                "forward_ms": 1e3 * t_fwd,
-                "forward_backward_ms": 1e3 * t_fb,
-                "composite_forward_backward_ms": 1e3 * t_comp,
-                "peak_mb": peak / 2**20,
+                "forward_ms": 1e3 * med[f"{backend}/fwd"],
+                "forward_backward_ms": 1e3 * med[f"{backend}/fwd_bwd"],
+                "composite_forward_backward_ms": 1e3 * med[f"{backend}/composite"],
+                "peak_mb": peak,
             }
-            ratios = ("", "")
-            if backend == "torch":
-                row["ratio_reference_over_kernel"] = row["torch"]["forward_backward_ms"] / row["cpu"]["forward_backward_ms"]
-                row["ratio_reference_over_kernel_composite"] = (
-                    row["torch"]["composite_forward_backward_ms"] / row["cpu"]["composite_forward_backward_ms"]
-                )
-                ratios = (f"{row['ratio_reference_over_kernel']:.1f}x", f"{row['ratio_reference_over_kernel_composite']:.1f}x")
-            log(f"{case.name:<5}{case.n_gaussians:>8}{case.size:>6}{pairs:>12}{backend:>9}{1e3 * t_fwd:>9.1f}{1e3 * t_fb:>12.1f}"
-                f"{peak / 2**20:>9.1f}{1e3 * t_comp:>18.1f}{ratios[0]:>23}{ratios[1]:>11}")
+            r = row[backend]
+            log(f"{case.name:<5}{case.n_gaussians:>8}{case.size:>6}{pairs:>12}{backend:>9}{r['forward_ms']:>9.1f}"
+                f"{r['forward_backward_ms']:>12.1f}{r['composite_forward_backward_ms']:>14.1f}{peak:>9.1f}")
+        if case.run_reference:
+            row["ratio_reference_over_kernel"] = row["torch"]["forward_backward_ms"] / row["cpu"]["forward_backward_ms"]
+            row["ratio_reference_over_kernel_composite"] = (
+                row["torch"]["composite_forward_backward_ms"] / row["cpu"]["composite_forward_backward_ms"]
+            )
+            log(f"      case {case.name}: reference / kernel, same run: whole rasterize fwd+bwd "
+                f"{row['ratio_reference_over_kernel']:.1f}x, compositing fwd+bwd {row['ratio_reference_over_kernel_composite']:.1f}x")
+        else:
+            row["torch"] = None
+            log(f"{case.name:<5}{case.n_gaussians:>8}{case.size:>6}{pairs:>12}{'torch':>9}   skipped (the reference is too slow at this size)")
         rows.append(row)
 
-    scaling = _scaling(rows)
-    if scaling:
-        log(f"scaling {scaling['from']}->{scaling['to']}: pairs x{scaling['pairs_ratio']:.2f}, kernel fwd+bwd time x{scaling['time_ratio']:.2f}"
-            f" ({'OK' if scaling['time_ratio'] <= scaling['pairs_ratio'] else 'SLOWER than the pairs'})")
-
-    sweep = []
-    base_case = next((c for c in config.cases if c.name == "b"), config.cases[0])
-    camera = orbit_camera(base_case.size, base_case.size)
-    for n_feat in config.feature_channels:
-        scene = random_scene(base_case.n_gaussians, camera, n_features=n_feat, seed=config.seed)
-        _, fwd_bwd = _render_fns(scene, base_case.size, "cpu")
-        t_fb, _ = _median_time(fwd_bwd, config.repeats)
-        sweep.append({"channels": n_feat, "forward_backward_ms": 1e3 * t_fb})
-        log(f"extra feature channels C={n_feat:>3} at case {base_case.name}: kernel fwd+bwd {1e3 * t_fb:.1f} ms")
+    scaling = _scaling(config, rows, log)
+    sweep = _feature_sweep(config, log)
     result = {"config": asdict(config), "rows": rows, "scaling": scaling, "feature_sweep": sweep}
     if out_path is not None:
         out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -207,17 +201,40 @@ def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, lo
     return result
 
 
-def _scaling(rows: list[dict]) -> dict | None:
-    named = {r["case"]: r for r in rows}
+def _feature_sweep(config: RenderBenchConfig, log: Callable[[str], None]) -> list[dict]:
+    """Kernel fwd+bwd at case b for several extra-channel counts C, interleaved."""
+    base_case = next((c for c in config.cases if c.name == "b"), config.cases[0])
+    camera = orbit_camera(base_case.size, base_case.size)
+    fns = {}
+    for n_feat in config.feature_channels:
+        scene = random_scene(base_case.n_gaussians, camera, n_features=n_feat, seed=config.seed)
+        fns[n_feat] = _render_fns(scene, base_case.size, "cpu")[1]
+    med = _interleaved_medians(fns, {k: config.repeats for k in fns})
+    sweep = [{"channels": c, "forward_backward_ms": 1e3 * t} for c, t in med.items()]
+    log(f"extra feature channels at case {base_case.name} (kernel fwd+bwd): "
+        + ", ".join(f"C={c}: {1e3 * t:.1f} ms" for c, t in med.items()))
+    return sweep
+
+
+def _scaling(config: RenderBenchConfig, rows: list[dict], log: Callable[[str], None]) -> dict | None:
+    """Kernel fwd+bwd time ratio from case b to case c against their ratio of pixel-Gaussian pairs, with the
+    two cases measured interleaved so that a change of machine load between them cannot fake the result."""
+    named = {c.name: c for c in config.cases}
     if "b" not in named or "c" not in named:
         return None
-    b, c = named["b"], named["c"]
-    return {
-        "from": "b",
-        "to": "c",
-        "pairs_ratio": c["pixel_gaussian_pairs"] / b["pixel_gaussian_pairs"],
-        "time_ratio": c["cpu"]["forward_backward_ms"] / b["cpu"]["forward_backward_ms"],
-    }
+    fns = {}
+    for name in ("b", "c"):
+        case = named[name]
+        scene = random_scene(case.n_gaussians, orbit_camera(case.size, case.size), seed=config.seed)
+        fns[name] = _render_fns(scene, case.size, "cpu")[1]
+    med = _interleaved_medians(fns, {"b": config.repeats, "c": config.repeats})
+    pairs = {r["case"]: r["pixel_gaussian_pairs"] for r in rows}
+    out = {"from": "b", "to": "c", "pairs_ratio": pairs["c"] / pairs["b"], "time_ratio": med["c"] / med["b"],
+           "b_ms": 1e3 * med["b"], "c_ms": 1e3 * med["c"]}
+    verdict = "OK: no faster than the pairs" if out["time_ratio"] <= out["pairs_ratio"] else "SLOWER than the pairs"
+    log(f"scaling b->c (interleaved): pairs x{out['pairs_ratio']:.2f}, kernel fwd+bwd time x{out['time_ratio']:.2f} "
+        f"({out['b_ms']:.1f} -> {out['c_ms']:.1f} ms): {verdict}")
+    return out
 
 
 def _numba_threads() -> int:

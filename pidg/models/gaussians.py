@@ -270,7 +270,7 @@ class GaussianModel:
         Points without colour start mid-grey.
         """
         config = config or GaussianModelConfig()
-        xyz = xyz.detach().to(torch.float32)
+        xyz = xyz.detach().to(torch.float32).clone()  # own the storage: Adam updates parameters in place
         n = xyz.shape[0]
         if n == 0:
             raise ValueError("GaussianModel.from_points: the point cloud is empty")

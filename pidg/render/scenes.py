@@ -73,31 +73,3 @@ def random_scene(
     cast = lambda t: None if t is None else t.to(dtype)  # noqa: E731
     return GaussianScene(cast(means), cast(quats), cast(scales), cast(opac), cast(colors), cast(feats))
 
-
-def torus_scene(n: int = 4000, seed: int = 0, dtype: torch.dtype = torch.float32) -> GaussianScene:
-    """A colourful torus of small Gaussians above a checkered floor: the embedded demo scene."""
-    gen = torch.Generator().manual_seed(seed)
-    n_torus = int(n * 0.7)
-    u = torch.rand(n_torus, generator=gen) * 2 * math.pi
-    v = torch.rand(n_torus, generator=gen) * 2 * math.pi
-    major, minor = 0.8, 0.3
-    torus = torch.stack(
-        [(major + minor * torch.cos(v)) * torch.cos(u), (major + minor * torch.cos(v)) * torch.sin(u), minor * torch.sin(v) + 0.2],
-        dim=-1,
-    )
-    hue = u / (2 * math.pi)
-    torus_rgb = torch.stack([0.5 + 0.5 * torch.cos(2 * math.pi * (hue + k / 3)) for k in range(3)], dim=-1)
-    side = int(math.sqrt(n - n_torus))
-    n_floor = side * side
-    grid = torch.stack(torch.meshgrid(torch.linspace(-1.8, 1.8, side), torch.linspace(-1.8, 1.8, side), indexing="ij"), -1)
-    floor = torch.cat([grid.reshape(-1, 2), torch.full((n_floor, 1), -0.45)], dim=-1)
-    checker = ((torch.floor(floor[:, 0] * 2.5) + torch.floor(floor[:, 1] * 2.5)) % 2).unsqueeze(-1)
-    floor_rgb = 0.25 + 0.5 * checker.expand(-1, 3)
-    means = torch.cat([torus, floor])
-    colors = torch.cat([torus_rgb, floor_rgb])
-    cell = 3.6 / (side - 1)
-    scales = torch.cat([torch.full((n_torus, 3), 0.045), torch.tensor([0.45 * cell, 0.45 * cell, 0.01]).expand(n_floor, 3)])
-    quats = torch.cat([torch.randn(n_torus, 4, generator=gen), torch.tensor([[1.0, 0, 0, 0]]).expand(n_floor, 4)])
-    opac = torch.full((n_torus + n_floor,), 0.85)
-    cast = lambda t: t.to(dtype).contiguous()  # noqa: E731
-    return GaussianScene(cast(means), cast(quats), cast(scales), cast(opac), cast(colors))

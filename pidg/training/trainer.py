@@ -1,0 +1,332 @@
+"""The training loop: canonical Gaussians + deformation field, rendered per training frame, 3DGS densification.
+
+One step: pick a training frame (a seeded permutation per epoch) -> deform the canonical Gaussians to its
+time -> render -> photometric loss (+ regularisers) -> backward -> Adam steps -> densification strategy.
+Every piece of state (parameters, Adam moments, strategy statistics, random generators, the frame order)
+goes into atomic checkpoints, so an interrupted run resumes to the same result.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import torch
+from torch import Tensor
+
+from pidg.config_tools import save_config, to_jsonable
+from pidg.data.scene import Frame, SceneData
+from pidg.evaluation.metrics import psnr
+from pidg.models.deformation import build_deformation
+from pidg.models.gaussians import GaussianModel
+from pidg.render import RenderOutput, rasterize
+from pidg.training.checkpoint import atomic_torch_save, load_checkpoint, random_states, restore_random_states, seed_everything
+from pidg.training.config import TrainConfig
+from pidg.training.densification import DensificationStrategy
+from pidg.training.losses import photometric_loss
+from pidg.training.optim import make_gaussian_optimizers, means_lr_at, set_lr
+
+logger = logging.getLogger(__name__)
+
+STEP_PHASES = ("deformation", "render", "loss", "backward", "optimizer", "densification")
+
+
+@dataclass
+class StepTimer:
+    """Wall time per phase of a training step (CPU work is synchronous, so perf_counter is exact)."""
+
+    totals: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    steps: int = 0
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.totals[name] += time.perf_counter() - t0
+
+    def breakdown_ms(self) -> dict[str, float]:
+        return {k: 1e3 * v / max(self.steps, 1) for k, v in self.totals.items()}
+
+
+class Trainer:
+    """Trains one scene. ``Trainer(config, scene).train()``; ``Trainer.resume(checkpoint)`` continues a run."""
+
+    def __init__(self, config: TrainConfig, scene: SceneData) -> None:
+        self.config = config
+        self.scene = scene
+        seed_everything(config.optim.seed)
+        self.extent = float(scene.bounds.extent)
+        self.model = GaussianModel.from_scene(scene, config.gaussians)
+        # decoupling flag per Gaussian: everything is dynamic until densification ends (NOTES.md section 3)
+        self.model.add_buffer("is_dynamic", torch.ones(self.model.num_gaussians, dtype=torch.bool))
+        self.deformation = build_deformation(config.deformation, scene.bounds)
+        self.gaussian_optimizers = make_gaussian_optimizers(self.model, config.gaussian_optim, self.extent)
+        self.deformation_optimizer = self._make_deformation_optimizer()
+        self.strategy = DensificationStrategy(self.model, self.gaussian_optimizers, self.extent, config.densify)
+        self.frame_generator = torch.Generator().manual_seed(config.optim.seed)
+        self._order: list[int] = []
+        self.step = 0
+        self.decoupled = False
+        self.train_seconds = 0.0
+        self.timer = StepTimer()
+        self.background = scene.background.to(torch.float32)
+        self.history: list[dict[str, float]] = []
+
+    # ---- construction -----------------------------------------------------------------------------------
+    def _make_deformation_optimizer(self) -> torch.optim.Optimizer | None:
+        groups = self.deformation.parameter_groups()
+        cfg = self.config.optim
+        param_groups = []
+        for name, params in groups.items():
+            params = [p for p in params if p.requires_grad]
+            if not params:
+                continue
+            factor = cfg.grid_lr_factor if "grid" in name else 1.0
+            param_groups.append({"params": params, "lr": cfg.deformation_lr * factor, "name": name, "base_lr": cfg.deformation_lr * factor})
+        if not param_groups:
+            return None
+        return torch.optim.Adam(param_groups, betas=(0.9, 0.999), eps=1e-15)
+
+    # ---- data -------------------------------------------------------------------------------------------
+    def next_frame(self) -> Frame:
+        """Training frames in a fresh random order each epoch, from a generator saved in checkpoints."""
+        if not self._order:
+            self._order = torch.randperm(len(self.scene.train), generator=self.frame_generator).tolist()
+        return self.scene.train[self._order.pop()]
+
+    # ---- forward ----------------------------------------------------------------------------------------
+    def deformation_active(self) -> bool:
+        return self.step >= self.config.optim.static_warmup
+
+    def gaussians_at(self, t: float) -> tuple[Tensor, Tensor, Tensor]:
+        """Means, quaternions and log-scales of the Gaussians at time ``t`` (canonical before the warm-up ends)."""
+        p = self.model.params
+        if not self.deformation_active():
+            return p["means"], p["quats"], p["log_scales"]
+        static = ~self.model.buffers["is_dynamic"] if self.decoupled else None
+        out = self.deformation(p["means"], p["quats"], p["log_scales"], t, static_mask=static)
+        return out.means, out.quats, out.log_scales
+
+    def render(self, frame: Frame, sh_degree: int | None = None) -> RenderOutput:
+        means, quats, log_scales = self.gaussians_at(frame.time)
+        return self._rasterize(means, quats, log_scales, frame, sh_degree)
+
+    def _rasterize(self, means: Tensor, quats: Tensor, log_scales: Tensor, frame: Frame, sh_degree: int | None = None) -> RenderOutput:
+        m = self.model
+        return rasterize(
+            means, quats, m.opacities, m.sh, frame.camera, log_scales=log_scales, background=self.background,
+            sh_degree=m.active_sh_degree if sh_degree is None else sh_degree, backend=self.config.backend,
+        )
+
+    # ---- one step ---------------------------------------------------------------------------------------
+    def train_step(self) -> dict[str, float]:
+        cfg = self.config
+        timer = self.timer
+        frame = self.next_frame()
+        self.model.update_sh_degree(self.step)
+        with timer.phase("deformation"):
+            means, quats, log_scales = self.gaussians_at(frame.time)
+        with timer.phase("render"):
+            out = self._rasterize(means, quats, log_scales, frame)
+        with timer.phase("loss"):
+            gt = frame.image
+            loss, parts = photometric_loss(out.rgb, gt, cfg.optim.lambda_dssim)
+            if self.deformation_active():
+                reg = self.deformation.regularization_loss()
+                if reg is not None:
+                    loss = loss + reg
+                    parts["deform_reg"] = float(reg.detach())
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"training diverged at step {self.step}: loss is {float(loss)} ({parts})")
+        self.strategy.step_pre_backward(out)
+        with timer.phase("backward"):
+            loss.backward()
+        with timer.phase("optimizer"):
+            self._optimizer_step()
+        with timer.phase("densification"):
+            report = self.strategy.step_post_backward(self.step, out, frame.width, frame.height)
+            if (not self.decoupled) and self.step + 1 >= cfg.densify.stop and any(f.mask is not None for f in self.scene.train):
+                self.decouple_static_dynamic()
+        timer.steps += 1
+        parts.update(loss=float(loss.detach()), psnr=float(psnr(out.rgb.detach().clamp(0, 1), gt)), gaussians=self.model.num_gaussians)
+        if report is not None:
+            parts["densified"] = 1.0
+        self.step += 1
+        return parts
+
+    def _optimizer_step(self) -> None:
+        cfg = self.config
+        set_lr(self.gaussian_optimizers["means"], means_lr_at(self.step, cfg.gaussian_optim, self.extent))
+        for opt in self.gaussian_optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        if self.deformation_optimizer is not None and self.deformation_active():
+            decay = 0.1 ** (self.step / max(cfg.optim.deformation_lr_decay_every, 1))
+            for group in self.deformation_optimizer.param_groups:
+                group["lr"] = group["base_lr"] * decay
+            self.deformation_optimizer.step()
+        if self.deformation_optimizer is not None:
+            self.deformation_optimizer.zero_grad(set_to_none=True)
+
+    # ---- static / dynamic decoupling --------------------------------------------------------------------
+    @torch.no_grad()
+    def decouple_static_dynamic(self) -> None:
+        """Mark each Gaussian dynamic if its centre lands in the motion mask in > vote of the views that see it."""
+        inside = torch.zeros(self.model.num_gaussians)
+        seen = torch.zeros(self.model.num_gaussians)
+        for frame in self.scene.train:
+            if frame.mask is None:
+                continue
+            means, _, _ = self.gaussians_at(frame.time)
+            cam = frame.camera
+            w2c = cam.world_to_camera
+            p = means @ w2c[:3, :3].T + w2c[:3, 3]
+            z = p[:, 2]
+            u = cam.fx * p[:, 0] / z.clamp_min(1e-6) + cam.cx
+            v = cam.fy * p[:, 1] / z.clamp_min(1e-6) + cam.cy
+            ok = (z > cam.near) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+            ui, vi = u[ok].long(), v[ok].long()
+            seen[ok] += 1
+            inside[ok] += frame.mask[vi, ui].float()
+        dynamic = inside > self.config.optim.dynamic_vote * seen.clamp_min(1)
+        self.model.buffers["is_dynamic"] = dynamic
+        self.decoupled = True
+        logger.info("static/dynamic decoupling at step %d: %d dynamic, %d static Gaussians", self.step, int(dynamic.sum()), int((~dynamic).sum()))
+
+    # ---- loop -------------------------------------------------------------------------------------------
+    def train(self, iterations: int | None = None) -> dict:
+        """Train to ``iterations`` (default: the config's), checkpointing on schedule, at the end and on budget."""
+        cfg = self.config
+        out_dir = Path(cfg.output.dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        save_config(cfg, out_dir / "config.json")
+        total = iterations if iterations is not None else cfg.optim.iterations
+        writer = _tensorboard(out_dir / "tensorboard")
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, initial=self.step, desc="training", disable=not cfg.output.progress, dynamic_ncols=True)
+        budget = None if cfg.optim.time_budget_minutes is None else 60.0 * cfg.optim.time_budget_minutes
+        stopped_by_budget = False
+        try:
+            while self.step < total:
+                t0 = time.perf_counter()
+                parts = self.train_step()
+                self.train_seconds += time.perf_counter() - t0
+                if self.step % cfg.output.log_every == 0 or self.step == total:
+                    self.history.append({"step": self.step, **parts})
+                    bar.set_postfix(loss=f"{parts['loss']:.4f}", psnr=f"{parts['psnr']:.2f}", n=parts["gaussians"])
+                    if writer is not None:
+                        for key, value in parts.items():
+                            writer.add_scalar(f"train/{key}", value, self.step)
+                        writer.add_scalar("train/iterations_per_second", self.timer.steps / max(self.train_seconds, 1e-9), self.step)
+                if writer is not None and cfg.output.preview_every and self.step % cfg.output.preview_every == 0:
+                    self._preview(writer)
+                if cfg.output.checkpoint_every and self.step % cfg.output.checkpoint_every == 0:
+                    self.save_checkpoint(out_dir / "checkpoint.pt")
+                bar.update(1)
+                if budget is not None and self.train_seconds >= budget:
+                    stopped_by_budget = True
+                    break
+        finally:
+            bar.close()
+            self.save_checkpoint(out_dir / "checkpoint.pt")
+            if writer is not None:
+                writer.close()
+        summary = self.summary(stopped_by_budget)
+        (out_dir / "train_summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+    def summary(self, stopped_by_budget: bool = False) -> dict:
+        return {
+            "iterations": self.step,
+            "train_minutes": self.train_seconds / 60.0,
+            "iterations_per_second": self.timer.steps / max(self.train_seconds, 1e-9),
+            "gaussians": self.model.num_gaussians,
+            "dynamic_gaussians": int(self.model.buffers["is_dynamic"].sum()),
+            "stopped_by_time_budget": stopped_by_budget,
+            "step_breakdown_ms": self.timer.breakdown_ms(),
+            "last": self.history[-1] if self.history else {},
+        }
+
+    @torch.no_grad()
+    def _preview(self, writer) -> None:
+        frame = self.scene.train[0]
+        out = self.render(frame)
+        image = torch.cat([out.rgb.clamp(0, 1), frame.image], dim=1)
+        writer.add_image("preview/render_vs_gt", image, self.step, dataformats="HWC")
+
+    # ---- checkpoints ------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "format": "pidg-checkpoint-1",
+            "config": to_jsonable(self.config),
+            "step": self.step,
+            "decoupled": self.decoupled,
+            "train_seconds": self.train_seconds,
+            "model": self.model.state_dict(),
+            "deformation": self.deformation.state_dict(),
+            "gaussian_optimizers": {k: v.state_dict() for k, v in self.gaussian_optimizers.items()},
+            "deformation_optimizer": None if self.deformation_optimizer is None else self.deformation_optimizer.state_dict(),
+            "strategy": self.strategy.state_dict(),
+            "random": random_states(),
+            "frame_generator": self.frame_generator.get_state(),
+            "frame_order": list(self._order),
+            "history": self.history,
+            "timer": {"totals": dict(self.timer.totals), "steps": self.timer.steps},
+        }
+
+    def save_checkpoint(self, path: Path) -> Path:
+        return atomic_torch_save(self.state_dict(), path)
+
+    def load_state_dict(self, state: dict) -> None:
+        self.model.load_state_dict(state["model"])
+        self.deformation.load_state_dict(state["deformation"])
+        for name, opt in self.gaussian_optimizers.items():
+            opt.load_state_dict(state["gaussian_optimizers"][name])
+        if self.deformation_optimizer is not None and state["deformation_optimizer"] is not None:
+            self.deformation_optimizer.load_state_dict(state["deformation_optimizer"])
+        self.strategy.load_state_dict(state["strategy"])
+        restore_random_states(state["random"])
+        self.frame_generator.set_state(state["frame_generator"])
+        self._order = list(state["frame_order"])
+        self.step = int(state["step"])
+        self.decoupled = bool(state["decoupled"])
+        self.train_seconds = float(state["train_seconds"])
+        self.history = list(state["history"])
+        self.timer.totals = defaultdict(float, state["timer"]["totals"])
+        self.timer.steps = int(state["timer"]["steps"])
+
+    @classmethod
+    def from_checkpoint(cls, path: Path, scene: SceneData, config: TrainConfig | None = None) -> "Trainer":
+        """Rebuild a trainer from a checkpoint (its own config unless one is given) and restore every state."""
+        from pidg.config_tools import from_jsonable
+
+        state = load_checkpoint(path)
+        if state.get("format") != "pidg-checkpoint-1":
+            raise RuntimeError(f"{path}: not a pidg training checkpoint")
+        config = config or from_jsonable(TrainConfig, state["config"])
+        trainer = cls(config, scene)
+        # densification changed the number of Gaussians: size the model (and its optimizers) like the checkpoint
+        trainer.model.load_state_dict(state["model"])
+        trainer.gaussian_optimizers = make_gaussian_optimizers(trainer.model, config.gaussian_optim, trainer.extent)
+        trainer.strategy = DensificationStrategy(trainer.model, trainer.gaussian_optimizers, trainer.extent, config.densify)
+        trainer.load_state_dict(state)
+        return trainer
+
+
+def _tensorboard(log_dir: Path):
+    """A SummaryWriter, or None (with a message) when the tensorboard package is missing."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:  # pragma: no cover - depends on the install
+        logger.warning("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
+        return None
+    return SummaryWriter(log_dir=str(log_dir))
+
