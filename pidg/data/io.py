@@ -159,14 +159,20 @@ def decode_rgb(path: Path, background: tuple[float, float, float]) -> np.ndarray
     if image.mode not in ("RGB", "RGBA"):
         image = image.convert("RGBA" if has_alpha else "RGB")
     array = np.asarray(image)
-    rgb = array[..., :3].astype(np.float32)
     if has_alpha:
-        alpha = array[..., 3:4].astype(np.float32)
-        alpha *= 1.0 / 255.0
-        bg = np.asarray(background, np.float32) * 255.0
-        rgb -= bg
-        rgb *= alpha
-        rgb += bg
+        return composite_rgba_float(array, background)
+    return array[..., :3].astype(np.float32)
+
+
+def composite_rgba_float(rgba: np.ndarray, background: tuple[float, float, float]) -> np.ndarray:
+    """RGBA uint8 [H, W, 4] -> RGB float32 in [0, 255] on ``background``: (rgb - bg) * a + bg, in place."""
+    rgb = rgba[..., :3].astype(np.float32)
+    alpha = rgba[..., 3:4].astype(np.float32)
+    alpha *= 1.0 / 255.0
+    bg = np.asarray(background, np.float32) * 255.0
+    rgb -= bg
+    rgb *= alpha
+    rgb += bg
     return rgb
 
 

@@ -42,6 +42,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from pidg.data.io import composite_rgba_float
 from pidg.data.ply import write_ply_points
 from pidg.data.scene import Background, Frame, PointCloud, SceneData, compute_bounds
 from pidg.render.api import rasterize
@@ -504,13 +505,7 @@ def _render_all(scene: ProceduralScene) -> dict[str, list[_Rendered]]:
 def composite_rgba(rgba: np.ndarray, background: tuple[float, float, float]) -> np.ndarray:
     """uint8 RGB [H, W, 3] of an RGBA uint8 image on ``background``, with the loader's exact arithmetic
     (``pidg.data.io.decode_rgb`` then rounding), so in-memory and reloaded frames are bit-identical."""
-    rgb = rgba[..., :3].astype(np.float32)
-    alpha = rgba[..., 3:4].astype(np.float32)
-    alpha *= 1.0 / 255.0
-    bg = np.asarray(background, np.float32) * 255.0
-    rgb -= bg
-    rgb *= alpha
-    rgb += bg
+    rgb = composite_rgba_float(rgba, background)
     np.clip(np.rint(rgb, out=rgb), 0, 255, out=rgb)
     return rgb.astype(np.uint8)
 
