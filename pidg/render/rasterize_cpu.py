@@ -80,34 +80,52 @@ def _tile_rects(means2d, radii, tile_size, tiles_x, tiles_y):  # pragma: no cove
     return rects, counts
 
 
-@njit(cache=True, nogil=True)
+_BIN_CHUNKS = 8  # contiguous slices of the depth order, binned in parallel
+
+
+@njit(parallel=True, cache=True, nogil=True)
 def _bin_sorted(rects, counts, depth_order, tiles_x, n_tiles):  # pragma: no cover - compiled
+    """Counting sort of (tile, Gaussian) pairs by tile, stable in depth order, in parallel.
+
+    The depth order is cut into contiguous chunks; each chunk histograms its own tiles, and a chunk's entries
+    of a tile are placed after those of all earlier (nearer) chunks, so every tile list stays front to back.
+    """
     n = counts.shape[0]
+    n_vis = depth_order.shape[0]
+    n_chunks = _BIN_CHUNKS
+    chunk_counts = np.zeros((n_chunks, n_tiles), dtype=np.int64)
+    for c in prange(n_chunks):
+        for r in range(c * n_vis // n_chunks, (c + 1) * n_vis // n_chunks):
+            g = depth_order[r]
+            for ty in range(rects[g, 2], rects[g, 3] + 1):
+                for tx in range(rects[g, 0], rects[g, 1] + 1):
+                    chunk_counts[c, ty * tiles_x + tx] += 1
     tile_offsets = np.zeros(n_tiles + 1, dtype=np.int64)
-    for g in range(n):
-        for ty in range(rects[g, 2], rects[g, 3] + 1):
-            for tx in range(rects[g, 0], rects[g, 1] + 1):
-                tile_offsets[ty * tiles_x + tx + 1] += 1
+    cursors = np.empty((n_chunks, n_tiles), dtype=np.int64)
     for t in range(n_tiles):
-        tile_offsets[t + 1] += tile_offsets[t]
+        pos = tile_offsets[t]
+        for c in range(n_chunks):
+            cursors[c, t] = pos
+            pos += chunk_counts[c, t]
+        tile_offsets[t + 1] = pos
     gauss_offsets = np.zeros(n + 1, dtype=np.int64)
     for g in range(n):
         gauss_offsets[g + 1] = gauss_offsets[g] + counts[g]
     m = gauss_offsets[n]
     isect_ids = np.empty(m, dtype=np.int64)
     isect_of_gauss = np.empty(m, dtype=np.int64)
-    cursor = tile_offsets[:-1].copy()
-    for r in range(depth_order.shape[0]):  # front to back, so each tile's list comes out depth-sorted
-        g = depth_order[r]
-        j = gauss_offsets[g]
-        for ty in range(rects[g, 2], rects[g, 3] + 1):
-            for tx in range(rects[g, 0], rects[g, 1] + 1):
-                t = ty * tiles_x + tx
-                pos = cursor[t]
-                cursor[t] = pos + 1
-                isect_ids[pos] = g
-                isect_of_gauss[j] = pos
-                j += 1
+    for c in prange(n_chunks):
+        for r in range(c * n_vis // n_chunks, (c + 1) * n_vis // n_chunks):
+            g = depth_order[r]
+            j = gauss_offsets[g]
+            for ty in range(rects[g, 2], rects[g, 3] + 1):
+                for tx in range(rects[g, 0], rects[g, 1] + 1):
+                    t = ty * tiles_x + tx
+                    pos = cursors[c, t]
+                    cursors[c, t] = pos + 1
+                    isect_ids[pos] = g
+                    isect_of_gauss[j] = pos
+                    j += 1
     return tile_offsets, isect_ids, gauss_offsets, isect_of_gauss
 
 
