@@ -22,7 +22,7 @@ from torch import Tensor
 from pidg.config_tools import save_config, to_jsonable
 from pidg.data.scene import Frame, SceneData
 from pidg.evaluation.metrics import psnr
-from pidg.models.deformation import build_deformation
+from pidg.models.deformation import Bounds, build_deformation
 from pidg.models.gaussians import GaussianModel
 from pidg.render import RenderOutput, rasterize
 from pidg.training.checkpoint import atomic_torch_save, load_checkpoint, random_states, restore_random_states, seed_everything
@@ -66,7 +66,10 @@ class Trainer:
         self.model = GaussianModel.from_scene(scene, config.gaussians)
         # decoupling flag per Gaussian: everything is dynamic until densification ends (NOTES.md section 3)
         self.model.add_buffer("is_dynamic", torch.ones(self.model.num_gaussians, dtype=torch.bool))
-        self.deformation = build_deformation(config.deformation, scene.bounds)
+        # Normalise deformation inputs by the box of the initial Gaussians, not the camera sphere: for D-NeRF-like
+        # captures the sphere is ~3x the object, which wastes grid resolution and scales the warp 3x
+        # (measured on bouncingballs at 200 px, 400 steps: 14 dB with the sphere, 22 dB with the box).
+        self.deformation = build_deformation(config.deformation, Bounds.from_points(self.model.params["means"].detach()))
         self.gaussian_optimizers = make_gaussian_optimizers(self.model, config.gaussian_optim, self.extent)
         self.deformation_optimizer = self._make_deformation_optimizer()
         self.strategy = DensificationStrategy(self.model, self.gaussian_optimizers, self.extent, config.densify)
