@@ -21,7 +21,6 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 NetName = Literal["alex", "vgg"]

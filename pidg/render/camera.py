@@ -132,6 +132,18 @@ class Camera:
     def fov_y(self) -> float:
         return 2.0 * math.atan(0.5 * self.height / self.fy)
 
+    def project_points(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """World points [N, 3] -> pixel coordinates [N, 2] (centres at +0.5) and camera depth [N].
+
+        Points at or behind the camera get finite but meaningless pixels: test ``depth > near`` before use.
+        """
+        w2c = self.world_to_camera.to(device=points.device, dtype=points.dtype)
+        p = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = p[:, 2]
+        inv_z = 1.0 / z.clamp_min(1e-6)
+        uv = torch.stack([self.fx * p[:, 0] * inv_z + self.cx, self.fy * p[:, 1] * inv_z + self.cy], dim=-1)
+        return uv, z
+
     def resized(self, width: int, height: int) -> "Camera":
         """The same camera rendering an image of another size (intrinsics scaled per axis)."""
         sx, sy = width / self.width, height / self.height

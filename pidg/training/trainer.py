@@ -189,11 +189,8 @@ class Trainer:
                 continue
             means, _, _ = self.gaussians_at(frame.time)
             cam = frame.camera
-            w2c = cam.world_to_camera
-            p = means @ w2c[:3, :3].T + w2c[:3, 3]
-            z = p[:, 2]
-            u = cam.fx * p[:, 0] / z.clamp_min(1e-6) + cam.cx
-            v = cam.fy * p[:, 1] / z.clamp_min(1e-6) + cam.cy
+            uv, z = cam.project_points(means)
+            u, v = uv.unbind(-1)
             ok = (z > cam.near) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
             ui, vi = u[ok].long(), v[ok].long()
             seen[ok] += 1

@@ -66,3 +66,13 @@ def test_sh_colour_conventions():
     assert torch.allclose(out, rgb + torch.tensor([[0.0, 0.0, -0.4886025]]), atol=1e-6)
     with pytest.raises(ValueError):
         sh_to_rgb(torch.zeros(1, 4, 3), torch.ones(1, 3), 2)
+
+
+def test_project_points_matches_intrinsics():
+    cam = Camera.look_at((0, 0, -3), (0, 0, 0), (0, -1, 0), 64, 48, 1.0)
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.5, -0.25, 1.0]])
+    uv, z = cam.project_points(pts)
+    p = pts @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
+    expected = (p @ cam.intrinsics.T)[:, :2] / p[:, 2:3]
+    assert torch.allclose(uv, expected, atol=1e-5) and torch.allclose(z, p[:, 2])
+    assert torch.allclose(uv[0], torch.tensor([32.0, 24.0]), atol=1e-5)
