@@ -1,1 +1,55 @@
-"""flow"""
+"""Optical-flow supervision (LPFM): flow preprocessing, backward motion-flow decomposition, rendered Gaussian and
+velocity flow, and the loss. See NOTES.md sections 6-8 and the module docstrings for conventions."""
+from pidg.flow.config import FlowConfig
+from pidg.flow.decomposition import (
+    BackwardDecomposition,
+    FlowTarget,
+    decompose_backward_flow,
+    dilate_mask,
+    motion_flow_target,
+    motion_mask_from_flow,
+    warp_to_first_frame,
+)
+from pidg.flow.gaussian_flow import (
+    FLOW_CHANNELS,
+    decode_flows,
+    deformation_matrix,
+    flow_features,
+    gaussian_flow_features,
+    project_velocity_means,
+)
+from pidg.flow.lpfm import LPFMResult, end_point_error, flow_target_for_pair, lpfm_loss
+from pidg.flow.optical_flow import (
+    FlowEstimatorUnavailable,
+    forward_backward_consistency,
+    make_estimator,
+)
+from pidg.flow.preprocess import FlowCache, FlowPair, preprocess_flow, run_preprocess
+
+__all__ = [
+    "FLOW_CHANNELS",
+    "BackwardDecomposition",
+    "FlowCache",
+    "FlowConfig",
+    "FlowEstimatorUnavailable",
+    "FlowPair",
+    "FlowTarget",
+    "LPFMResult",
+    "decode_flows",
+    "decompose_backward_flow",
+    "deformation_matrix",
+    "dilate_mask",
+    "end_point_error",
+    "flow_features",
+    "flow_target_for_pair",
+    "forward_backward_consistency",
+    "gaussian_flow_features",
+    "lpfm_loss",
+    "make_estimator",
+    "motion_flow_target",
+    "motion_mask_from_flow",
+    "preprocess_flow",
+    "project_velocity_means",
+    "run_preprocess",
+    "warp_to_first_frame",
+]

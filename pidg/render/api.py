@@ -78,7 +78,8 @@ def _check_inputs(
             raise TypeError(f"rasterize: {name} has dtype {t.dtype} but means has {dtype}; use one float dtype")
         if t.device != device:
             raise ValueError(f"rasterize: {name} is on {t.device} but means is on {device}")
-        if not torch.isfinite(t).all():
+        # a NaN or inf anywhere makes the sum non-finite: one reduction instead of an elementwise pass per input
+        if t.numel() and not torch.isfinite(t.sum()) and not torch.isfinite(t).all():
             bad = (~torch.isfinite(t)).reshape(t.shape[0], -1).any(dim=1).nonzero()[:5].flatten().tolist() if t.numel() else []
             raise ValueError(f"rasterize: {name} contains NaN or infinite values (first bad Gaussians: {bad})")
     if (scales < 0).any():

@@ -48,6 +48,18 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ).reshape(quats.shape[:-1] + (3, 3))
 
 
+def rotate_by_inverse(quats: Tensor, v: Tensor) -> Tensor:
+    """R^T v for the rotations of quaternions [N, 4] (w, x, y, z; normalised here) and vectors [N, 3].
+
+    Two cross products on [N, 3] tensors: about half the time (forward + backward) of forming R [N, 3, 3]
+    and reducing over its rows, which torch does slowly on CPU at this shape.
+    """
+    q = quats / quats.norm(dim=-1, keepdim=True)
+    w, u = q[:, :1], q[:, 1:]
+    uv = torch.linalg.cross(u, v)
+    return v + 2.0 * (torch.linalg.cross(u, uv) - w * uv)
+
+
 def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
     """World-space covariance R S S^T R^T [N, 3, 3] from quaternions and (linear) scales."""
     m = quat_to_rotmat(quats) * scales.unsqueeze(-2)
@@ -90,9 +102,8 @@ def project_gaussians(
     # J W row i = J[i,i] W[i,:] + J[i,2] W[2,:], with J[0,2] = -fx tx / z^2 = -fx tan_x / z.
     jw0 = (camera.fx * inv_z).unsqueeze(-1) * rot[0] - (camera.fx * tan_x * inv_z).unsqueeze(-1) * rot[2]
     jw1 = (camera.fy * inv_z).unsqueeze(-1) * rot[1] - (camera.fy * tan_y * inv_z).unsqueeze(-1) * rot[2]
-    rs = quat_to_rotmat(quats) * scales.unsqueeze(-2)  # [N, 3, 3] = R S
-    a0 = (jw0.unsqueeze(-1) * rs).sum(-2)  # [N, 3] row 0 of J W R S
-    a1 = (jw1.unsqueeze(-1) * rs).sum(-2)
+    a0 = rotate_by_inverse(quats, jw0) * scales  # [N, 3] row 0 of J W R S = (R^T (J W)_0) * s
+    a1 = rotate_by_inverse(quats, jw1) * scales
     a = (a0 * a0).sum(-1) + eps2d
     b = (a0 * a1).sum(-1)
     c = (a1 * a1).sum(-1) + eps2d

@@ -4,7 +4,7 @@ import math
 import torch
 
 from pidg.render.camera import Camera
-from pidg.render.projection import ALPHA_MIN, EPS2D, covariance_3d, project_gaussians, quat_to_rotmat
+from pidg.render.projection import ALPHA_MIN, EPS2D, covariance_3d, project_gaussians, quat_to_rotmat, rotate_by_inverse
 from pidg.render.scenes import orbit_camera, random_scene
 
 
@@ -25,6 +25,14 @@ def test_rotation_matrix_is_orthonormal_and_matches_axis_angle():
     # 90 degrees about z: (w, x, y, z) = (cos 45, 0, 0, sin 45) maps x -> y
     rz = quat_to_rotmat(torch.tensor([[math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)]], dtype=torch.float64))[0]
     assert torch.allclose(rz @ torch.tensor([1.0, 0, 0], dtype=torch.float64), torch.tensor([0.0, 1, 0], dtype=torch.float64), atol=1e-12)
+
+
+def test_rotate_by_inverse_matches_transposed_rotation_matrix():
+    g = torch.Generator().manual_seed(3)
+    q = torch.randn(64, 4, generator=g, dtype=torch.float64) * 3.0  # unnormalised on purpose
+    v = torch.randn(64, 3, generator=g, dtype=torch.float64)
+    expected = (quat_to_rotmat(q).transpose(-1, -2) @ v.unsqueeze(-1)).squeeze(-1)
+    assert torch.allclose(rotate_by_inverse(q, v), expected, atol=1e-12)
 
 
 def test_means_and_covariance_match_pinhole_jacobian():

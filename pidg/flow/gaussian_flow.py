@@ -1,0 +1,140 @@
+"""Gaussian flow and velocity flow as per-Gaussian feature channels of the ordinary rasterize pass.
+
+GaussianFlow (paper eq. for p^gaussian, supp. B): a pixel p keeps its normalised coordinates inside each 2D
+Gaussian from t to t+1, so Gaussian i carries p to  mu_{t+1} + A (p - mu_t)  with
+
+    A = Sigma_{t+1}^{1/2} Sigma_t^{-1/2}
+
+(symmetric PSD square roots; the reference code's swapped Sigma_{t+1}^{-1/2} Sigma_t^{1/2} is a known defect).
+Both 2D Gaussians come from projecting the 3D Gaussians at t and at t+1 with camera t, so camera motion cancels.
+Gaussian i's flow at p is affine in p:
+
+    flow_i(p) = (A - I)(p - mu_t) + (mu_{t+1} - mu_t) = M p + b,   M = A - I,   b = mu_{t+1} - mu_t - M mu_t
+
+so compositing M (4 channels) and b (2 channels) with the colour weights w_i = alpha_i T_i gives
+flow(p) = (M(p) p + b(p)) / sum_i w_i -- the normalised-weight (K -> infinity) form of the paper's top-K sum.
+The velocity flow replaces mu_{t+1} by the camera-t projection of x + v dt (2 more channels, b_v).
+Channel layout: [m00, m01, m10, m11, b_x, b_y, bv_x, bv_y].
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from pidg.flow.optical_flow import pixel_centers
+from pidg.render.camera import Camera
+from pidg.render.projection import Projection, project_gaussians
+
+FLOW_CHANNELS = 8  # with the velocity flow; 6 without
+DECODE_MIN_ALPHA = 1e-4  # below this accumulated alpha a pixel has no flow (division by ~0)
+
+
+def sqrtm_2x2(cov: Tensor) -> Tensor:
+    """Principal square root [..., 2, 2] of SPD matrices given as upper triangles (a, b, c) [..., 3].
+
+    Closed form: sqrt(S) = (S + s I) / t with s = sqrt(det S), t = sqrt(tr S + 2 s).
+    """
+    a, b, c = cov.unbind(-1)
+    s = torch.sqrt(a * c - b * b)
+    t = torch.sqrt(a + c + 2.0 * s)
+    return torch.stack([(a + s) / t, b / t, b / t, (c + s) / t], dim=-1).reshape(cov.shape[:-1] + (2, 2))
+
+
+def inv_sqrtm_2x2(cov: Tensor) -> Tensor:
+    """S^{-1/2} [..., 2, 2] of SPD (a, b, c) [..., 3]: adj(S + s I) / (t s), the inverse of :func:`sqrtm_2x2`."""
+    a, b, c = cov.unbind(-1)
+    s = torch.sqrt(a * c - b * b)
+    ts = torch.sqrt(a + c + 2.0 * s) * s
+    return torch.stack([(c + s) / ts, -b / ts, -b / ts, (a + s) / ts], dim=-1).reshape(cov.shape[:-1] + (2, 2))
+
+
+def deformation_matrix(cov_t: Tensor, cov_t1: Tensor) -> Tensor:
+    """A = Sigma_{t+1}^{1/2} Sigma_t^{-1/2} [..., 2, 2] from 2D covariances (a, b, c) [..., 3] at t and t+1."""
+    return sqrtm_2x2(cov_t1) @ inv_sqrtm_2x2(cov_t)
+
+
+def _valid_covariance(cov: Tensor) -> Tensor:
+    a, b, c = cov.detach().unbind(-1)
+    return (a > 0) & (c > 0) & (a * c - b * b > 0) & torch.isfinite(cov.detach()).all(-1)
+
+
+def flow_features(
+    proj_t: Projection, proj_t1: Projection, means2d_velocity: Tensor | None = None, valid: Tensor | None = None
+) -> Tensor:
+    """Per-Gaussian flow channels [N, 8] ([N, 6] without ``means2d_velocity``), differentiable.
+
+    ``proj_t`` / ``proj_t1``: the Gaussians at t and t+1, both projected with camera t. ``means2d_velocity`` [N, 2]:
+    camera-t pixels of x + v dt. Rows are zero (the Gaussian carries no flow; it still occludes) for Gaussians
+    culled at t (radius 0: not drawn anyway), for degenerate t+1 covariances, and where ``valid`` [N] is False
+    (e.g. behind camera t at t+1, see :func:`gaussian_flow_features`). A Gaussian that merely leaves the image
+    by t+1 keeps its flow: that motion is real.
+    """
+    cov_t, cov_t1 = proj_t.cov2d, proj_t1.cov2d
+    keep = (proj_t.radii > 0).all(-1) & _valid_covariance(cov_t) & _valid_covariance(cov_t1)
+    keep = keep & torch.isfinite(proj_t1.means2d.detach()).all(-1)
+    if valid is not None:
+        keep = keep & valid.to(keep.device)
+    # Substitute the identity covariance on dropped rows so no NaN reaches the (masked) gradient.
+    eye = cov_t.new_tensor([1.0, 0.0, 1.0])
+    k3 = keep.unsqueeze(-1)
+    a = deformation_matrix(torch.where(k3, cov_t, eye), torch.where(k3, cov_t1, eye))
+    m = a - torch.eye(2, dtype=a.dtype, device=a.device)
+    mu_t = proj_t.means2d
+    m_mu = (m @ mu_t.unsqueeze(-1)).squeeze(-1)
+    channels = [m.reshape(-1, 4), proj_t1.means2d - mu_t - m_mu]
+    if means2d_velocity is not None:
+        if tuple(means2d_velocity.shape) != tuple(mu_t.shape):
+            raise ValueError(f"means2d_velocity must be [N, 2] = {list(mu_t.shape)}, got {list(means2d_velocity.shape)}")
+        channels.append(means2d_velocity - mu_t - m_mu)
+    features = torch.cat(channels, dim=-1)
+    return torch.where(k3, features, torch.zeros_like(features))
+
+
+def decode_flows(
+    features: Tensor, alpha: Tensor, min_alpha: float = DECODE_MIN_ALPHA
+) -> tuple[Tensor, Tensor | None, Tensor]:
+    """Rendered flow channels [H, W, 8 or 6] and accumulated alpha [H, W] -> (Gaussian flow [H, W, 2], velocity
+    flow [H, W, 2] or None, valid [H, W]) in pixels at the pixel centres; flows are 0 where alpha <= min_alpha."""
+    h, w = alpha.shape
+    if features.dim() != 3 or tuple(features.shape[:2]) != (h, w) or features.shape[-1] not in (6, 8):
+        raise ValueError(f"features must be [H, W, 6 or 8] = [{h}, {w}, 8], got {list(features.shape)}")
+    p = pixel_centers(h, w, features.dtype, features.device)
+    m = features[..., :4].reshape(h, w, 2, 2)
+    mp = (m @ p.unsqueeze(-1)).squeeze(-1)
+    valid = alpha > min_alpha
+    inv_alpha = torch.where(valid, 1.0 / alpha.clamp_min(min_alpha), torch.zeros_like(alpha)).unsqueeze(-1)
+    flow_g = (mp + features[..., 4:6]) * inv_alpha
+    flow_v = (mp + features[..., 6:8]) * inv_alpha if features.shape[-1] == 8 else None
+    return flow_g, flow_v, valid
+
+
+def project_velocity_means(means: Tensor, velocities: Tensor, dt: float, camera: Camera) -> tuple[Tensor, Tensor]:
+    """Camera pixels [N, 2] and depths [N] of the means advected by their velocities, x + v dt."""
+    return camera.project_points(means + velocities * dt)
+
+
+def gaussian_flow_features(
+    camera_t: Camera,
+    means_t: Tensor,
+    quats_t: Tensor,
+    scales_t: Tensor,
+    opacities: Tensor,
+    means_t1: Tensor,
+    quats_t1: Tensor,
+    scales_t1: Tensor,
+    velocities: Tensor | None = None,
+    dt: float = 0.0,
+) -> Tensor:
+    """Feature channels [N, 8] (or [N, 6] without velocities) for ``rasterize(..., features=)`` at time t.
+
+    Projects the Gaussians at t and at t+1 (and x_t + v dt) with camera t -- the same projection rasterize does
+    for the image -- and drops Gaussians whose t+1 (or advected) centre is not in front of camera t.
+    """
+    proj_t = project_gaussians(means_t, quats_t, scales_t, opacities, camera_t)
+    proj_t1 = project_gaussians(means_t1, quats_t1, scales_t1, opacities, camera_t)
+    valid = proj_t1.depths.detach() > camera_t.near
+    means2d_velocity = None
+    if velocities is not None:
+        means2d_velocity, depth_v = project_velocity_means(means_t, velocities, dt, camera_t)
+        valid = valid & (depth_v.detach() > camera_t.near)
+    return flow_features(proj_t, proj_t1, means2d_velocity, valid)

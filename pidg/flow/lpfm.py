@@ -1,0 +1,117 @@
+"""The Lagrangian particle flow matching loss (paper eq. L_LPFM; NOTES.md section 8).
+
+    L_LPFM = lambda_g * L1(flow_g, flow_gt) + lambda_v * L1(flow_v, flow_gt)
+
+L1 is the per-pixel L1 norm |dx| + |dy| in pixels, averaged over the supervised pixels: flow_gt valid (motion
+mask, consistent flows, valid depth) and rendered alpha above ``FlowConfig.min_alpha``. Flows are never clamped
+or rescaled, and every field is [H, W, 2] (rows, columns, xy) -- checked, so a [2, H, W] tensor is an error.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from pidg.flow.config import FlowConfig
+from pidg.flow.decomposition import FlowTarget, motion_flow_target
+from pidg.flow.preprocess import FlowPair
+
+
+@dataclass
+class LPFMResult:
+    """The loss (a scalar tensor, not yet multiplied by ``lambda_lpfm``) and detached diagnostics."""
+
+    loss: Tensor
+    epe_gaussian: float  # mean end-point error of the Gaussian flow on supervised pixels (pixels)
+    epe_velocity: float | None  # same for the velocity flow (None without one)
+    valid_pixels: int
+    mean_target_px: float  # mean |flow_gt| on supervised pixels, to read the EPEs against
+
+    def scalars(self) -> dict[str, float]:
+        out = {"lpfm": float(self.loss.detach()), "epe_gaussian": self.epe_gaussian,
+               "valid_pixels": float(self.valid_pixels), "target_px": self.mean_target_px}
+        if self.epe_velocity is not None:
+            out["epe_velocity"] = self.epe_velocity
+        return out
+
+
+def _check_flow(name: str, flow: Tensor, shape: tuple[int, int]) -> None:
+    if tuple(flow.shape) != (*shape, 2):
+        raise ValueError(f"{name} must be [H, W, 2] = {[*shape, 2]}, got {list(flow.shape)}")
+
+
+def _check_valid(valid: Tensor, shape: tuple[int, int]) -> None:
+    if tuple(valid.shape) != shape or valid.dtype != torch.bool:
+        raise ValueError(f"valid must be a bool [H, W] = {list(shape)} mask, got {valid.dtype} {list(valid.shape)}")
+
+
+def end_point_error(flow: Tensor, flow_gt: Tensor, valid: Tensor | None = None) -> Tensor:
+    """Mean Euclidean distance |flow - flow_gt| in pixels over ``valid`` pixels (0 when there are none)."""
+    shape = (flow_gt.shape[0], flow_gt.shape[1]) if flow_gt.dim() == 3 else (-1, -1)
+    _check_flow("flow_gt", flow_gt, shape)
+    _check_flow("flow", flow, shape)
+    err = (flow - flow_gt).norm(dim=-1)
+    if valid is None:
+        return err.mean()
+    _check_valid(valid, shape)
+    return err[valid].mean() if valid.any() else err.new_zeros(())
+
+
+def flow_l1(flow: Tensor, flow_gt: Tensor, valid: Tensor) -> Tensor:
+    """Mean over ``valid`` pixels of |dx| + |dy| (pixels); a graph-connected 0 when no pixel is valid."""
+    diff = (flow - flow_gt).abs().sum(-1)
+    count = valid.sum()
+    return (diff * valid).sum() / count.clamp_min(1)
+
+
+def lpfm_loss(
+    flow_gaussian: Tensor,
+    flow_velocity: Tensor | None,
+    target: FlowTarget,
+    alpha: Tensor,
+    config: FlowConfig,
+) -> LPFMResult:
+    """L_LPFM between rendered flows [H, W, 2] (camera t, :func:`pidg.flow.gaussian_flow.decode_flows`) and the
+    motion-flow target on frame t's grid; ``alpha`` [H, W] is the rendered accumulated opacity."""
+    shape = (target.flow.shape[0], target.flow.shape[1])
+    _check_flow("flow_gt", target.flow, shape)
+    _check_flow("flow_gaussian", flow_gaussian, shape)
+    if flow_velocity is not None:
+        _check_flow("flow_velocity", flow_velocity, shape)
+    _check_valid(target.valid, shape)
+    if tuple(alpha.shape) != shape:
+        raise ValueError(f"alpha must be [H, W] = {list(shape)}, got {list(alpha.shape)}")
+    valid = target.valid & (alpha.detach() > config.min_alpha)
+    gt = target.flow.to(flow_gaussian.dtype)
+    loss = config.lambda_gaussian * flow_l1(flow_gaussian, gt, valid)
+    epe_v = None
+    if flow_velocity is not None:
+        loss = loss + config.lambda_velocity * flow_l1(flow_velocity, gt, valid)
+        epe_v = float(end_point_error(flow_velocity.detach(), gt, valid))
+    count = int(valid.sum())
+    return LPFMResult(
+        loss=loss,
+        epe_gaussian=float(end_point_error(flow_gaussian.detach(), gt, valid)),
+        epe_velocity=epe_v,
+        valid_pixels=count,
+        mean_target_px=float(gt[valid].norm(dim=-1).mean()) if count else 0.0,
+    )
+
+
+def flow_target_for_pair(pair: FlowPair, depth1: Tensor, config: FlowConfig) -> FlowTarget:
+    """flow_gt for a cached pair, given frame t+1's depth [H, W] (dataset depth, or the model's rendered
+    ``RenderOutput.depth_normalized()`` at t+1 in camera t+1; 0 = unknown). Motion mask: the dataset's mask of
+    frame t when present, else derived from the motion flow with ``config.motion_threshold``."""
+    return motion_flow_target(
+        depth1,
+        pair.frame0.camera,
+        pair.frame1.camera,
+        pair.forward,
+        pair.backward,
+        pair.valid_forward,
+        pair.valid_backward,
+        motion_mask0=pair.frame0.mask,
+        dilation=config.mask_dilation,
+        motion_threshold=config.motion_threshold,
+    )

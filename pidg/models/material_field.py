@@ -1,0 +1,297 @@
+"""PIDG's time-evolving material field f_theta: (particle position x, time t, particle index i) -> (v, sigma).
+
+Features (paper Sec. 4.2), concatenated:
+  * six learnable planes XY, XZ, YZ, XT, YT, ZT (``plane_channels`` each), looked up bilinearly at the particle's
+    normalised (x, y, z, t): x_hat = (x - centre) / half_extent (the ``Bounds`` box maps onto [-1, 1]^3) and
+    t in [0, 1] spans the time axis (t_hat = 2t - 1 in [-1, 1]);
+  * a Fourier time encoding sin / cos(pi 2^k t_hat), k < ``time_frequencies``;
+  * a learnable embedding of the particle index (``embedding_dim``, paper: 64), indexed by the Gaussians'
+    ``particle_index`` buffer. Children of a clone or split inherit their parent's index (``GaussianModel``), so
+    the table has one row per *initial* particle (``GaussianModel.num_particles``) and never needs resizing.
+A shared MLP trunk (``depth`` x ``width``, smooth activation) feeds two linear heads: v in R^3 and the six
+independent stress components (xx, yy, zz, xy, xz, yz). The stress head starts at exactly zero (a stress-free
+material) and the velocity head at ``velocity_init_scale`` times PyTorch's default init (small but non-zero, so
+that the residual has a gradient from the first step: v = sigma = 0 is a stationary point of L_CMR).
+
+Why concatenation rather than the K-planes / HexPlane product: the paper's feature vector is the concatenation
+[F_planes, T(t), e_i]; a product of six features makes each plane's gradient (and each tangent) scale with the
+five others, so one small plane silences all of them and the derivative picks up six product-rule terms; with
+concatenation every plane's contribution and derivative is independent and the MLP learns the interactions.
+
+Velocity is in world units per unit of normalised time (the whole sequence is t in [0, 1]), so a displacement
+over one frame is v / (n_frames - 1).
+
+``jet`` returns the field and its exact first derivatives with respect to (x, y, z, t) by forward-mode tangents
+written by hand: four tangent directions are pushed through the network as one [4, M, D] tensor next to the
+primal [M, D], so the derivatives cost a few matmuls (torch's grid_sample has no forward-mode derivative, and
+double-backward / ``torch.func`` are slower, see ``pidg.physics.bench``). The result is an ordinary autograd
+graph: L_CMR, which contains these derivatives, is differentiated with respect to the parameters and the
+positions by ``backward()`` as usual.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from pidg.models.deformation.base import GROUP_GRID, GROUP_MLP, Bounds, NormalizedPositions, times_column
+from pidg.physics.config import PhysicsConfig
+from pidg.physics.jet import FieldJet
+
+GROUP_EMBEDDING = "embedding"  # the index embedding table: its own learning rate
+
+# plane k of the spatial table spans axes (SPATIAL_AXES[0][k], SPATIAL_AXES[1][k]): XY, XZ, YZ
+SPATIAL_AXES = ((0, 0, 1), (1, 2, 2))
+# plane k of the temporal table spans (axis k, t): XT, YT, ZT; axis 3 is time
+TEMPORAL_AXES = ((0, 1, 2), (3, 3, 3))
+NUM_DIRECTIONS = 4  # tangent directions d/dx, d/dy, d/dz, d/dt
+
+ActivationFn = Callable[[Tensor], tuple[Tensor, Tensor]]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# smooth activations with their derivative
+# ---------------------------------------------------------------------------------------------------------------
+def _tanh(z: Tensor) -> tuple[Tensor, Tensor]:
+    a = torch.tanh(z)
+    return a, 1.0 - a * a
+
+
+def _silu(z: Tensor) -> tuple[Tensor, Tensor]:
+    s = torch.sigmoid(z)
+    return z * s, s * (1.0 + z * (1.0 - s))
+
+
+def _softplus(z: Tensor) -> tuple[Tensor, Tensor]:
+    return F.softplus(z), torch.sigmoid(z)
+
+
+#: (phi(z), phi'(z)). Smooth on purpose: the CMR backward differentiates through the tangents phi'(z) * dz, so it
+#: needs phi''. With ReLU phi'' = 0, grad v would be piecewise constant in x (jumping across activation
+#: boundaries) and the loss gradient with respect to the positions would lose every curvature term. tanh is the
+#: default because it is the cheapest: one transcendental per element and phi' = 1 - phi^2 from the output.
+ACTIVATIONS: dict[str, ActivationFn] = {"tanh": _tanh, "silu": _silu, "softplus": _softplus}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# plane lookup
+# ---------------------------------------------------------------------------------------------------------------
+def plane_lookup(planes: Tensor, pa: Tensor, pb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Bilinear lookup of K planes with its analytic derivatives.
+
+    planes [K, Ra, Rb, C]; pa, pb [M, K]: continuous cell coordinates (0 and R - 1 are the first and last grid
+    lines). Returns the values and their derivatives d/dpa, d/dpb, each [M, K, C].
+
+    Borders: the cell index is clamped to [0, R - 2] but the fractional coordinate f = p - index is *not*
+    clamped, so outside the planes the lookup continues the border cell's bilinear function (linear
+    extrapolation). Values stay continuous, and d/dpa, d/dpb and the gradient with respect to p stay non-zero
+    outside the box; clamping p instead would freeze every particle that leaves the box (zero derivative, zero
+    gradient), which is exactly where deformed particles go. Particles far outside are extrapolated linearly,
+    which the MLP's saturating activation keeps bounded.
+    """
+    k, ra, rb, c = planes.shape
+    ia = pa.detach().floor().clamp(0, ra - 2)
+    ib = pb.detach().floor().clamp(0, rb - 2)
+    fa, fb = (pa - ia).unsqueeze(-1), (pb - ib).unsqueeze(-1)
+    first = torch.arange(k, device=planes.device) * (ra * rb) + ia.long() * rb + ib.long()  # [M, K]
+    corner_offsets = torch.tensor([0, 1, rb, rb + 1], device=planes.device)  # (a, b), (a, b+1), (a+1, b), (a+1, b+1)
+    rows = (first.unsqueeze(-1) + corner_offsets).reshape(-1)
+    corners = planes.reshape(k * ra * rb, c).index_select(0, rows).reshape(*first.shape, 4, c)
+    v00, v01, v10, v11 = corners.unbind(-2)
+    along_a_low, along_a_high = v10 - v00, v11 - v01
+    d_pa = along_a_low + fb * (along_a_high - along_a_low)
+    d_pb = (v01 - v00) + fa * (along_a_high - along_a_low)
+    value = v00 + fb * (v01 - v00) + fa * d_pa
+    return value, d_pa, d_pb
+
+
+def _axis_scales(axes: tuple[tuple[int, ...], tuple[int, ...]], scale: Tensor) -> tuple[Tensor, Tensor]:
+    """[4, K] matrices S_a, S_b with S[d, k] = dp/d(direction d) for plane k's a / b axis (0 if not that axis)."""
+    directions = torch.arange(NUM_DIRECTIONS, device=scale.device)[:, None]
+    out = []
+    for plane_axes in axes:
+        axis = torch.tensor(plane_axes, device=scale.device)[None, :]
+        out.append(torch.where(directions == axis, scale[axis], torch.zeros((), dtype=scale.dtype, device=scale.device)))
+    return out[0], out[1]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the field
+# ---------------------------------------------------------------------------------------------------------------
+class MaterialField(nn.Module):
+    """f_theta(x, t, i) -> (v, sigma); see the module docstring."""
+
+    def __init__(self, bounds: Bounds | Tensor | object | None, num_particles: int, config: PhysicsConfig | None = None) -> None:
+        super().__init__()
+        self.config = cfg = config or PhysicsConfig()
+        if num_particles < 1:
+            raise ValueError(f"MaterialField: need at least one particle, got num_particles={num_particles}")
+        self.num_particles = int(num_particles)
+        self.normalize = NormalizedPositions(bounds)
+        rs, rt, c = cfg.spatial_resolution, cfg.time_resolution, cfg.plane_channels
+        self.spatial_planes = nn.Parameter(torch.randn(3, rs, rs, c) * cfg.init_std)  # XY, XZ, YZ
+        self.temporal_planes = nn.Parameter(torch.randn(3, rs, rt, c) * cfg.init_std)  # XT, YT, ZT
+        self.index_embedding = nn.Parameter(torch.randn(self.num_particles, cfg.embedding_dim) * cfg.init_std)
+        self.register_buffer("frequencies", math.pi * 2.0 ** torch.arange(cfg.time_frequencies, dtype=torch.float32))
+        self.activation = ACTIVATIONS[cfg.activation]
+        self.tangent_dim = 6 * c + 2 * cfg.time_frequencies  # feature columns that depend on (x, t)
+        dims = [self.tangent_dim + cfg.embedding_dim] + [cfg.width] * cfg.depth
+        self.trunk = nn.ModuleList(nn.Linear(d_in, d_out) for d_in, d_out in zip(dims[:-1], dims[1:]))
+        self.head_velocity = nn.Linear(cfg.width, 3)
+        self.head_stress = nn.Linear(cfg.width, 6)
+        with torch.no_grad():
+            self.head_velocity.weight.mul_(cfg.velocity_init_scale)
+            self.head_velocity.bias.zero_()
+            self.head_stress.weight.zero_()
+            self.head_stress.bias.zero_()
+
+    # -- public API ---------------------------------------------------------------------------------------------
+    def forward(self, x: Tensor, t: float | Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+        """v [M, 3] and sigma [M, 6] at world positions x [M, 3], times t (float or [M], in [0, 1]), indices [M]."""
+        x, times = self._check_inputs(x, t, index)
+        features = self._features(x, times, index)
+        hidden = features
+        for layer in self.trunk:
+            hidden = self.activation(layer(hidden))[0]
+        v = self.head_velocity(hidden)
+        sigma = self.head_stress(hidden) if self.config.stress else hidden.new_zeros(hidden.shape[0], 6)
+        return v, sigma
+
+    def jet(self, x: Tensor, t: float | Tensor, index: Tensor) -> FieldJet:
+        """v, sigma and their exact derivatives with respect to world (x, y, z) and t, by hand-written tangents.
+
+        Every tensor is differentiable with respect to the parameters and x by ordinary autograd.
+        """
+        x, times = self._check_inputs(x, t, index)
+        hidden, tangent = self._features_with_tangents(x, times, index)
+        for depth, layer in enumerate(self.trunk):
+            z = layer(hidden)
+            weight = layer.weight[:, : self.tangent_dim] if depth == 0 else layer.weight  # embedding: no tangent
+            dz = tangent @ weight.T  # [4, M, width]
+            hidden, slope = self.activation(z)
+            tangent = slope * dz
+        v = self.head_velocity(hidden)
+        dv = tangent @ self.head_velocity.weight.T  # [4, M, 3]
+        if self.config.stress:
+            sigma = self.head_stress(hidden)
+            dsigma = tangent[:3] @ self.head_stress.weight.T  # [3, M, 6]: the residual needs no d sigma / dt
+        else:
+            sigma = hidden.new_zeros(hidden.shape[0], 6)
+            dsigma = hidden.new_zeros(3, hidden.shape[0], 6)
+        return FieldJet(
+            v=v,
+            sigma=sigma,
+            dv_dx=dv[:3].permute(1, 2, 0),
+            dv_dt=dv[3],
+            dsigma_dx=dsigma.permute(1, 2, 0),
+        )
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Parameters by optimiser group: planes (``GROUP_GRID``), MLP (``GROUP_MLP``), ``GROUP_EMBEDDING``."""
+        special = {id(self.spatial_planes), id(self.temporal_planes), id(self.index_embedding)}
+        groups = {
+            GROUP_GRID: [self.spatial_planes, self.temporal_planes],
+            GROUP_MLP: [p for p in self.parameters() if id(p) not in special],
+            GROUP_EMBEDDING: [self.index_embedding],
+        }
+        return {name: [p for p in params if p.requires_grad] for name, params in groups.items()}
+
+    def make_optimizers(self, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> dict[str, torch.optim.Optimizer]:
+        """Adam over the planes and the MLP, and a lazy ``SparseAdam`` over the index embedding, with the config's
+        learning rates (each group also carries ``base_lr`` and ``name`` for schedules).
+
+        The embedding's gradient is sparse (only the M sampled rows): a dense one would cost a zero-filled [P, H]
+        tensor and a full Adam update per step, i.e. time and memory growing with the number of particles
+        (measured: +24 ms per step at P = 200k). SparseAdam also leaves rows that were not sampled untouched.
+        """
+        cfg = self.config
+        groups = self.parameter_groups()
+        lrs = {GROUP_GRID: cfg.mlp_lr * cfg.plane_lr_factor, GROUP_MLP: cfg.mlp_lr, GROUP_EMBEDDING: cfg.embedding_lr}
+
+        def group(name: str) -> dict:
+            return {"params": groups[name], "lr": lrs[name], "base_lr": lrs[name], "name": f"material_{name}"}
+
+        dense = [group(name) for name in (GROUP_GRID, GROUP_MLP) if groups[name]]
+        optimizers: dict[str, torch.optim.Optimizer] = {}
+        if dense:
+            optimizers["material"] = torch.optim.Adam(dense, betas=betas, eps=eps)
+        if groups[GROUP_EMBEDDING]:
+            optimizers["material_embedding"] = torch.optim.SparseAdam([group(GROUP_EMBEDDING)], betas=betas, eps=eps)
+        return optimizers
+
+    # -- inputs and features ------------------------------------------------------------------------------------
+    def _check_inputs(self, x: Tensor, t: float | Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+        """Shape, dtype, range and finiteness checks with messages that name the problem; -> (x, times [M])."""
+        if x.dim() != 2 or x.shape[1] != 3:
+            raise ValueError(f"MaterialField: x must be [M, 3], got {list(x.shape)}")
+        m = x.shape[0]
+        if index.shape != (m,):
+            raise ValueError(f"MaterialField: index must be [M] = [{m}], got {list(index.shape)}")
+        if index.dtype.is_floating_point or index.dtype == torch.bool or index.dtype.is_complex:
+            raise ValueError(f"MaterialField: index must be an integer tensor, got {index.dtype}")
+        dtype = self.spatial_planes.dtype
+        x = x.to(dtype)
+        times = times_column(t, m, x)
+        if m == 0:
+            return x, times
+        lo, hi = int(index.min()), int(index.max())
+        if lo < 0 or hi >= self.num_particles:
+            raise IndexError(
+                f"MaterialField: particle index out of range [0, {self.num_particles}): min {lo}, max {hi} "
+                "(the table has one row per initial particle, GaussianModel.num_particles)"
+            )
+        if not bool(torch.isfinite(x).all()):
+            bad = torch.nonzero(~torch.isfinite(x).all(dim=1)).squeeze(1)
+            raise ValueError(f"MaterialField: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
+        if not bool(torch.isfinite(times).all()):
+            raise ValueError("MaterialField: non-finite times")
+        return x, times
+
+    def _plane_coordinates(self, x: Tensor, times: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Continuous cell coordinates: spatial [M, 3], temporal [M], and dp/d(x, y, z, t) [4] (constant)."""
+        rs, rt = self.config.spatial_resolution, self.config.time_resolution
+        p_space = (self.normalize(x) + 1.0) * (0.5 * (rs - 1))
+        p_time = times * (rt - 1)
+        half = self.normalize.half_extent.to(x.dtype)
+        scale = torch.cat([(0.5 * (rs - 1)) / half, half.new_full((1,), float(rt - 1))])
+        return p_space, p_time, scale
+
+    def _plane_lookups(self, x: Tensor, times: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
+        """Values, d/dpa, d/dpb of the six planes [M, 6, C] (XY, XZ, YZ, XT, YT, ZT) and dp/d(x, y, z, t)."""
+        p_space, p_time, scale = self._plane_coordinates(x, times)
+        spatial = plane_lookup(self.spatial_planes, p_space[:, list(SPATIAL_AXES[0])], p_space[:, list(SPATIAL_AXES[1])])
+        temporal = plane_lookup(self.temporal_planes, p_space, p_time[:, None].expand(-1, 3))
+        return tuple(torch.cat([s, t], dim=1) for s, t in zip(spatial, temporal)), scale  # type: ignore[return-value]
+
+    def _fourier(self, times: Tensor) -> tuple[Tensor, Tensor]:
+        """sin / cos(omega_k t_hat) [M, 2n] and its t-derivative [M, 2n] (t_hat = 2t - 1)."""
+        omega = self.frequencies.to(times.dtype)
+        angles = (2.0 * times - 1.0)[:, None] * omega
+        sin, cos = torch.sin(angles), torch.cos(angles)
+        return torch.cat([sin, cos], dim=-1), torch.cat([2.0 * omega * cos, -2.0 * omega * sin], dim=-1)
+
+    def _embed(self, index: Tensor) -> Tensor:
+        """Index embedding rows [M, H]; sparse gradient (see ``make_optimizers``)."""
+        return F.embedding(index, self.index_embedding, sparse=True)
+
+    def _features(self, x: Tensor, times: Tensor, index: Tensor) -> Tensor:
+        (planes, _, _), _ = self._plane_lookups(x, times)
+        fourier, _ = self._fourier(times)
+        embedding = self._embed(index)
+        return torch.cat([planes.flatten(1), fourier, embedding], dim=-1)
+
+    def _features_with_tangents(self, x: Tensor, times: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
+        """Features [M, D] and their derivatives along x, y, z, t [4, M, tangent_dim] (the embedding's are 0)."""
+        (planes, d_pa, d_pb), scale = self._plane_lookups(x, times)
+        (sa_space, sb_space), (sa_time, sb_time) = _axis_scales(SPATIAL_AXES, scale), _axis_scales(TEMPORAL_AXES, scale)
+        scale_a, scale_b = torch.cat([sa_space, sa_time], dim=1), torch.cat([sb_space, sb_time], dim=1)  # [4, 6]
+        m = x.shape[0]
+        d_planes = d_pa * scale_a[:, None, :, None] + d_pb * scale_b[:, None, :, None]  # [4, M, 6, C]
+        fourier, d_fourier = self._fourier(times)
+        d_fourier = torch.cat([d_fourier.new_zeros(3, m, d_fourier.shape[1]), d_fourier[None]], dim=0)
+        tangent = torch.cat([d_planes.flatten(2), d_fourier], dim=-1)
+        embedding = self._embed(index)
+        return torch.cat([planes.flatten(1), fourier, embedding], dim=-1), tangent

@@ -1,0 +1,158 @@
+"""Cost of L_CMR per training step: forward + backward time by sample size and variant, and peak memory by N.
+
+``python -m pidg.physics.bench`` prints a table (and ``--out FILE`` writes JSON). Variants, timed interleaved
+(the machine is shared and noisy, so only same-run ratios are meaningful):
+  * ``tangents``: the material field's hand-written forward-mode tangents (what training uses);
+  * ``tangents+ckpt``: the same with ``checkpoint_blocks`` (activations recomputed in backward);
+  * ``torch.func``: the same field differentiated by ``jet_from_function`` (four ``torch.func.jvp``).
+Peak memory is the RSS growth of one step in a fresh process (torch allocations are invisible to tracemalloc, and
+a long-lived process reuses freed memory).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from pidg.evaluation.bench_render import _interleaved_medians
+from pidg.models.material_field import MaterialField
+from pidg.physics.cmr import cmr_loss
+from pidg.physics.config import PhysicsConfig
+from pidg.physics.jet import FieldJet, jet_from_function
+
+VARIANTS = ("tangents", "tangents+ckpt", "torch.func")
+
+
+@dataclass
+class CMRBenchConfig:
+    samples: tuple[int, ...] = (1024, 2048, 4096)
+    particles: tuple[int, ...] = (20_000, 200_000)  # N for the memory comparison (timing uses the first)
+    variants: tuple[str, ...] = VARIANTS
+    block_sizes: tuple[int, ...] = ()  # also time ``tangents`` with these block sizes at the largest M
+    repeats: int = 7
+    seed: int = 0
+    physics: PhysicsConfig = field(default_factory=lambda: PhysicsConfig(kind="cmr"))
+
+
+class _TorchFuncJet:
+    """The field's jet by ``torch.func.jvp`` of its forward: the generic route, for comparison."""
+
+    def __init__(self, field: MaterialField) -> None:
+        self.field = field
+
+    def jet(self, x: Tensor, t: float | Tensor, index: Tensor) -> FieldJet:
+        return jet_from_function(lambda xx, tt: self.field(xx, tt, index), x, torch.as_tensor(t, dtype=x.dtype))
+
+
+def _case(n: int, physics: PhysicsConfig, seed: int) -> tuple[MaterialField, Tensor, Tensor]:
+    """A field over N particles and positions (a leaf standing in for the deformation's output) in its box."""
+    torch.manual_seed(seed)
+    field_ = MaterialField(None, n, physics)
+    positions = (torch.rand(n, 3) * 2.2 - 1.1).requires_grad_(True)  # a few particles just outside the box
+    return field_, positions, torch.arange(n)
+
+
+def _step_fn(n: int, physics: PhysicsConfig, variant: str, seed: int) -> Callable[[], None]:
+    """One training-step worth of L_CMR: sample, forward, backward into the field and the positions."""
+    field_, positions, index = _case(n, physics, seed)
+    if variant == "tangents+ckpt":
+        physics = dataclasses.replace(physics, checkpoint_blocks=True)
+    source = _TorchFuncJet(field_) if variant == "torch.func" else field_
+    generator = torch.Generator().manual_seed(seed)
+    params = [*field_.parameters(), positions]
+
+    def step() -> None:
+        cmr_loss(source, positions, 0.37, index, physics, generator).loss.backward()
+        for p in params:
+            p.grad = None
+
+    return step
+
+
+def measure_peak_rss(n: int, physics: PhysicsConfig, variant: str = "tangents", seed: int = 0) -> float:
+    """Peak RSS growth (MiB) over one step at N particles, sampled every 0.5 ms in a fresh process."""
+    code = (
+        "import dataclasses, json, os, threading, time, pidg, torch\n"
+        "from pidg.physics.bench import _step_fn\n"
+        "from pidg.physics.config import PhysicsConfig\n"
+        "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
+        f"physics = PhysicsConfig(**json.loads({json.dumps(json.dumps(dataclasses.asdict(physics)))}))\n"
+        f"_step_fn(64, dataclasses.replace(physics, samples=8, block_size=8), '{variant}', 0)()  # load kernels\n"
+        f"step = _step_fn({n}, physics, '{variant}', {seed})\n"
+        "base, peak, done = rss(), [0], threading.Event()\n"
+        "def sample():\n"
+        "    while not done.is_set():\n"
+        "        peak[0] = max(peak[0], rss()); time.sleep(0.0005)\n"
+        "th = threading.Thread(target=sample); th.start(); step(); done.set(); th.join()\n"
+        "print((max(peak[0], rss()) - base) / 2**20)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        raise RuntimeError(f"bench_cmr: memory probe failed:\n{result.stderr[-2000:]}")
+    return float(result.stdout.strip().splitlines()[-1])
+
+
+def bench_cmr(config: CMRBenchConfig | None = None, log: Callable[[str], None] = print) -> dict:
+    """Median forward + backward ms per (M, variant), and peak MiB per (N, M): the figures behind the defaults."""
+    config = config or CMRBenchConfig()
+    base = config.physics
+    log(f"torch threads {torch.get_num_threads()}; width {base.width}, depth {base.depth}, activation {base.activation}, "
+        f"planes {base.spatial_resolution}^2 / {base.spatial_resolution}x{base.time_resolution} x {base.plane_channels}")
+    n_time = config.particles[0]
+    fns: dict[str, Callable[[], None]] = {}
+    for m in config.samples:
+        physics = dataclasses.replace(base, samples=m, block_size=m)
+        for variant in config.variants:
+            fns[f"M={m} {variant}"] = _step_fn(n_time, physics, variant, config.seed)
+    m_max = max(config.samples)
+    for b in config.block_sizes:
+        fns[f"M={m_max} tangents block={b}"] = _step_fn(n_time, dataclasses.replace(base, samples=m_max, block_size=b), "tangents", config.seed)
+    medians = _interleaved_medians(fns, {name: config.repeats for name in fns})
+    timing = {name: 1e3 * s for name, s in medians.items()}
+    log(f"forward + backward, N = {n_time}, median of {config.repeats} interleaved runs:")
+    for name, ms in timing.items():
+        log(f"  {name:<32}{ms:8.1f} ms")
+    memory: dict[str, float] = {}
+    log("peak RSS growth of one step (fresh process):")
+    for n in config.particles:
+        for m in config.samples:
+            for variant in ("tangents", "tangents+ckpt"):
+                if variant not in config.variants:
+                    continue
+                physics = dataclasses.replace(base, samples=m, block_size=m)
+                key = f"N={n} M={m} {variant}"
+                memory[key] = measure_peak_rss(n, physics, variant, config.seed)
+                log(f"  {key:<36}{memory[key]:8.1f} MiB")
+    return {"timing_ms": timing, "peak_mib": memory}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, nargs="+", default=list(CMRBenchConfig.samples))
+    parser.add_argument("--particles", type=int, nargs="+", default=list(CMRBenchConfig.particles))
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--block-sizes", type=int, nargs="*", default=[])
+    parser.add_argument("--width", type=int, default=PhysicsConfig.width)
+    parser.add_argument("--activation", default=PhysicsConfig.activation)
+    parser.add_argument("--repeats", type=int, default=CMRBenchConfig.repeats)
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args(argv)
+    physics = PhysicsConfig(kind="cmr", width=args.width, activation=args.activation)
+    config = CMRBenchConfig(tuple(args.samples), tuple(args.particles), tuple(args.variants), tuple(args.block_sizes),
+                            args.repeats, physics=physics)
+    result = bench_cmr(config)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({"config": dataclasses.asdict(config), **result}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
