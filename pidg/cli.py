@@ -11,9 +11,12 @@ from pathlib import Path
 
 def _train_config(args: argparse.Namespace):
     from pidg.config_tools import apply_overrides, load_config, overrides_from_args
-    from pidg.training.config import TrainConfig
+    from pidg.training.config import TrainConfig, apply_preset
 
-    base = load_config(TrainConfig, Path(args.config)) if getattr(args, "config", None) else TrainConfig()
+    if getattr(args, "config", None):
+        base = load_config(TrainConfig, Path(args.config))  # a saved config is already resolved: no preset
+    else:
+        base = apply_preset(TrainConfig(), args.preset)
     return apply_overrides(base, overrides_from_args(args))
 
 
@@ -80,8 +83,24 @@ def _cmd_bench_quality(args: argparse.Namespace) -> int:
     from pidg.evaluation.bench_quality import run_quality_bench
 
     base = _train_config(args)
-    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), base, args.downscale, args.minutes)
+    minutes = args.minutes if args.minutes and args.minutes > 0 else None
+    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), base, args.downscale, minutes, args.variants)
     return 0
+
+
+def _add_preset_argument(parser: argparse.ArgumentParser) -> None:
+    """--preset, plus the paper's ablation switches as short forms of --physics.kind / --flow.kind."""
+    from pidg.config_tools import MISSING_OPTION
+
+    parser.add_argument("--physics", choices=["none", "cmr"], dest="cfg::physics.kind", default=MISSING_OPTION,
+                        help="Cauchy momentum residual on the material field (same as --physics.kind)")
+    parser.add_argument("--flow", choices=["none", "lpfm"], dest="cfg::flow.kind", default=MISSING_OPTION,
+                        help="Lagrangian particle flow matching against preprocessed optical flow (same as --flow.kind)")
+    parser.add_argument(
+        "--preset", choices=["auto", "paper", "cpu"], default="auto",
+        help="model sizes: paper (Grid4D as published), cpu (smaller hash tables and layers), auto = paper with CUDA, "
+        "else cpu; --section.field options override it",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -94,6 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", help="train on a dataset folder (D-NeRF, PIDG/BlenderNeRF, HyperNeRF)")
     train.add_argument("--config", help="a config.json to start from (e.g. one written by an earlier run)")
     train.add_argument("--resume", action="store_true", help="continue from OUTPUT.DIR/checkpoint.pt")
+    _add_preset_argument(train)
     add_config_arguments(train, TrainConfig)
     train.set_defaults(func=_cmd_train)
 
@@ -126,8 +146,10 @@ def build_parser() -> argparse.ArgumentParser:
     quality.add_argument("scenes", nargs="+", help="dataset folders")
     quality.add_argument("--out", default="outputs/bench/quality")
     quality.add_argument("--downscale", default=None, help="factor or WxH, e.g. 400x400")
-    quality.add_argument("--minutes", type=float, default=30.0, help="training time budget per scene")
+    quality.add_argument("--minutes", type=float, default=30.0, help="training time budget per run (0: none, --optim.iterations only)")
+    quality.add_argument("--variants", nargs="*", default=None, help="ablation rows per scene: base cmr full nostress lpfm (default: the config as given)")
     quality.add_argument("--config", help="a config.json to start from")
+    _add_preset_argument(quality)
     add_config_arguments(quality, TrainConfig)
     quality.set_defaults(func=_cmd_bench_quality)
     return parser

@@ -15,6 +15,7 @@ from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
 
 T = TypeVar("T")
 _MISSING = object()
+MISSING_OPTION = _MISSING  # default of options that override a config field only when given
 
 
 def _is_dataclass_type(tp: Any) -> bool:

@@ -15,8 +15,7 @@ from pidg.evaluation.evaluate import evaluate_views
 from pidg.evaluation.images import colorize_scalar, save_png
 from pidg.evaluation.lpips import lpips_weights_available
 from pidg.evaluation.video import write_video
-from pidg.models.deformation import HashGridConfig
-from pidg.training.config import TrainConfig
+from pidg.training.config import TrainConfig, apply_preset
 from pidg.training.trainer import Trainer
 
 logger = logging.getLogger(__name__)
@@ -79,14 +78,7 @@ def render_run(run_dir: Path, split: str = "test", fps: int = 24, n_time_steps: 
 
 def demo_config(data_dir: Path, run_dir: Path, iterations: int, minutes: float | None) -> TrainConfig:
     """A short CPU schedule for the 128 px procedural scene: densify early and often, stop at 60 %."""
-    cfg = TrainConfig(data=DataConfig(path=data_dir, progress=False))
-    # a CPU-sized Grid4D: smaller hash tables (Adam touches every entry each step) and 64-wide layers
-    cfg.deformation.grid4d = dataclasses.replace(
-        cfg.deformation.grid4d,
-        spatial_grid=HashGridConfig(16, 2, 16, 16, 1024),
-        temporal_grid=HashGridConfig(32, 2, 15, (8, 8, 8), (32, 32, 16)),
-        width=64,
-    )
+    cfg = apply_preset(TrainConfig(data=DataConfig(path=data_dir, progress=False)), "cpu")
     densify_stop = max(int(0.6 * iterations), 1)
     cfg.densify = dataclasses.replace(cfg.densify, start=200, stop=densify_stop, every=100, opacity_reset_every=max(densify_stop // 2, 500))
     cfg.gaussian_optim = dataclasses.replace(cfg.gaussian_optim, means_lr_decay_steps=iterations)

@@ -1,4 +1,8 @@
-"""``pidg bench quality``: train and evaluate a list of scenes under one budget, and print one table."""
+"""``pidg bench quality``: train and evaluate scenes x variants under one budget and seed, and print one table.
+
+Variants are the paper's ablation rows, one flag apart (``--variants base cmr full``): every run of a bench uses
+the same base config, seed and budget, so the rows differ only by the variant's options.
+"""
 from __future__ import annotations
 
 import dataclasses
@@ -6,10 +10,20 @@ import json
 from pathlib import Path
 from typing import Callable
 
+from pidg.config_tools import apply_overrides
 from pidg.data import load_scene
 from pidg.data.scene import parse_downscale
 from pidg.evaluation.lpips import lpips_weights_available
 from pidg.training.config import TrainConfig
+
+# name -> config overrides (dotted names, as on the command line)
+VARIANTS: dict[str, dict[str, str]] = {
+    "base": {"physics.kind": "none", "flow.kind": "none"},  # PIDG w/o (CMR + LPFM)
+    "cmr": {"physics.kind": "cmr", "flow.kind": "none"},  # PIDG w/o LPFM
+    "full": {"physics.kind": "cmr", "flow.kind": "lpfm"},  # PIDG
+    "nostress": {"physics.kind": "cmr", "physics.stress": "false", "flow.kind": "none"},  # sigma == 0 ablation
+    "lpfm": {"physics.kind": "none", "flow.kind": "lpfm"},  # flow matching without the momentum residual
+}
 
 
 def run_quality_bench(
@@ -18,35 +32,52 @@ def run_quality_bench(
     base: TrainConfig,
     downscale: str | None = None,
     minutes: float | None = 30.0,
+    variants: list[str] | None = None,
     log: Callable[[str], None] = print,
 ) -> list[dict]:
-    """For each scene: train with ``base`` (same seed and budget for all), evaluate its test split."""
+    """For each scene and variant: train with ``base`` + the variant's options, then evaluate the test split.
+
+    With ``variants`` None the base config runs as given (one row per scene, variant "-").
+    """
     from pidg.pipeline import evaluate_run
     from pidg.training.trainer import Trainer
 
+    unknown = [v for v in variants or [] if v not in VARIANTS]
+    if unknown:
+        raise ValueError(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
     rows = []
     nets = tuple(n for n in ("alex", "vgg") if lpips_weights_available((n,)))
     for path in scenes:
         data = dataclasses.replace(base.data, path=path, progress=False)
         if downscale:
             data = dataclasses.replace(data, downscale=parse_downscale(downscale))
-        run_dir = out_root / Path(path).name
-        optim = dataclasses.replace(base.optim, time_budget_minutes=minutes)
-        config = dataclasses.replace(base, data=data, optim=optim, output=dataclasses.replace(base.output, dir=run_dir))
-        summary = Trainer(config, load_scene(data)).train()
-        metrics = evaluate_run(run_dir, "test", lpips_nets=nets)
-        row = {
-            "scene": Path(path).name,
-            **{k: metrics["mean"].get(k) for k in ("psnr", "ssim", "ms_ssim", "lpips_alex", "lpips_vgg")},
-            "train_minutes": summary["train_minutes"],
-            "iterations": summary["iterations"],
-            "iterations_per_second": summary["iterations_per_second"],
-            "gaussians": summary["gaussians"],
-            "step_breakdown_ms": summary["step_breakdown_ms"],
-        }
-        rows.append(row)
-        log(format_table(rows))
-    (out_root / "quality.json").write_text(json.dumps(rows, indent=2))
+        scene = load_scene(data)
+        for variant in variants or [None]:
+            run_dir = out_root / Path(path).name / (variant or "")
+            config = apply_overrides(base, VARIANTS[variant]) if variant else base
+            optim = dataclasses.replace(config.optim, time_budget_minutes=minutes)
+            config = dataclasses.replace(
+                config, data=data, optim=optim, output=dataclasses.replace(config.output, dir=run_dir)
+            )
+            trainer = Trainer(config, scene)
+            summary = trainer.train()
+            metrics = evaluate_run(run_dir, "test", lpips_nets=nets)
+            row = {
+                "scene": Path(path).name,
+                "variant": variant or "-",
+                **{k: metrics["mean"].get(k) for k in ("psnr", "ssim", "ms_ssim", "lpips_alex", "lpips_vgg")},
+                "train_minutes": summary["train_minutes"],
+                "iterations": summary["iterations"],
+                "iterations_per_second": summary["iterations_per_second"],
+                "gaussians": summary["gaussians"],
+                "step_breakdown_ms": summary["step_breakdown_ms"],
+                "cmr_final": summary.get("cmr_final"),
+                "velocity_flow_epe": summary.get("velocity_flow_epe"),
+                "gaussian_flow_epe": summary.get("gaussian_flow_epe"),
+            }
+            rows.append(row)
+            log(format_table(rows))
+            (out_root / "quality.json").write_text(json.dumps(rows, indent=2))
     return rows
 
 
@@ -54,11 +85,15 @@ def format_table(rows: list[dict]) -> str:
     def f(v, fmt):
         return format(v, fmt) if isinstance(v, (int, float)) else "-"
 
-    lines = [f"{'scene':<16}{'PSNR':>8}{'SSIM':>8}{'LPIPS-A':>9}{'LPIPS-V':>9}{'min':>7}{'iters':>8}{'it/s':>7}{'Gaussians':>11}"]
+    lines = [
+        f"{'scene':<15}{'variant':>9}{'PSNR':>8}{'SSIM':>8}{'LPIPS-A':>9}{'LPIPS-V':>9}{'min':>7}{'iters':>7}"
+        f"{'it/s':>7}{'Gaussians':>10}{'CMR':>10}{'EPE-v':>8}"
+    ]
     for r in rows:
         lines.append(
-            f"{r['scene']:<16}{f(r['psnr'], '.2f'):>8}{f(r['ssim'], '.4f'):>8}{f(r['lpips_alex'], '.4f'):>9}"
-            f"{f(r['lpips_vgg'], '.4f'):>9}{f(r['train_minutes'], '.1f'):>7}{r['iterations']:>8}"
-            f"{f(r['iterations_per_second'], '.2f'):>7}{r['gaussians']:>11}"
+            f"{r['scene']:<15}{r.get('variant', '-'):>9}{f(r['psnr'], '.2f'):>8}{f(r['ssim'], '.4f'):>8}"
+            f"{f(r['lpips_alex'], '.4f'):>9}{f(r['lpips_vgg'], '.4f'):>9}{f(r['train_minutes'], '.1f'):>7}"
+            f"{r['iterations']:>7}{f(r['iterations_per_second'], '.2f'):>7}{r['gaussians']:>10}"
+            f"{f(r.get('cmr_final'), '.3g'):>10}{f(r.get('velocity_flow_epe'), '.2f'):>8}"
         )
     return "\n".join(lines)

@@ -18,7 +18,13 @@ from pidg.flow.gaussian_flow import (
     gaussian_flow_features,
     project_velocity_means,
 )
-from pidg.flow.lpfm import LPFMResult, end_point_error, flow_target_for_pair, lpfm_loss
+from pidg.flow.lpfm import (
+    LPFMResult,
+    depth_from_render,
+    end_point_error,
+    flow_target_for_pair,
+    lpfm_loss,
+)
 from pidg.flow.optical_flow import (
     FlowEstimatorUnavailable,
     forward_backward_consistency,
@@ -38,6 +44,7 @@ __all__ = [
     "decode_flows",
     "decompose_backward_flow",
     "deformation_matrix",
+    "depth_from_render",
     "dilate_mask",
     "end_point_error",
     "flow_features",

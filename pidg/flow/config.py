@@ -30,7 +30,7 @@ class FlowConfig:
     # optical flow estimation (preprocessing)
     estimator: EstimatorName = "dis"  # OpenCV DIS (fast), DeepFlow, Dual TV-L1, or RAFT with local weights
     dis_preset: DisPreset = "medium"
-    raft_weights: Path | None = None  # TorchScript RAFT or torchvision raft_large state dict; never downloaded
+    raft_weights: Path | None = None  # local RAFT (.pt2 export, TorchScript, or torchvision state dict)
     # forward-backward check |f(p) + b(p + f(p))|^2 < alpha (|f(p)|^2 + |b(p + f(p))|^2) + beta (pixels^2)
     consistency_alpha: float = 0.01
     consistency_beta: float = 0.5
@@ -40,6 +40,10 @@ class FlowConfig:
     mask_dilation: int = 3  # pixels the motion mask of frame t is dilated by (square structuring element)
     motion_threshold: float = 1.0  # pixels of camera-compensated flow above which a pixel counts as moving
     min_alpha: float = 0.05  # rendered alpha below which a pixel's rendered flow is not supervised
+    # flow_gt needs frame t+1's depth, rendered by the model (a no-grad render + the decomposition, ~100-250 ms per
+    # step on a CPU at 400x400). A pair's target is rebuilt when it is older than this many steps (1 = every step);
+    # the depth of a converging model changes slowly, and each pair is visited once per epoch anyway.
+    target_refresh_steps: int = 300
 
     def __post_init__(self) -> None:
         if isinstance(self.raft_weights, str):
@@ -54,6 +58,8 @@ class FlowConfig:
                      "motion_threshold", "min_alpha"):
             if not float(getattr(self, name)) >= 0.0:
                 raise ValueError(f"FlowConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.target_refresh_steps < 1:
+            raise ValueError(f"FlowConfig.target_refresh_steps must be >= 1, got {self.target_refresh_steps}")
         if self.start < 0 or self.mask_dilation < 0:
             raise ValueError(f"FlowConfig: start and mask_dilation must be >= 0, got {self.start}, {self.mask_dilation}")
         if not self.cache_dir:

@@ -16,6 +16,9 @@ from torch import Tensor
 from pidg.flow.config import FlowConfig
 from pidg.flow.decomposition import FlowTarget, motion_flow_target
 from pidg.flow.preprocess import FlowPair
+from pidg.render.api import RenderOutput
+
+DEPTH_MIN_ALPHA = 0.5  # rendered depth counts only where the render is mostly opaque
 
 
 @dataclass
@@ -99,9 +102,15 @@ def lpfm_loss(
     )
 
 
+def depth_from_render(render: RenderOutput, min_alpha: float = DEPTH_MIN_ALPHA) -> Tensor:
+    """Expected depth [H, W] of a render (frame t+1, camera t+1), 0 (= unknown) where alpha < ``min_alpha``:
+    half-transparent pixels mix foreground and background depths, and empty ones have none."""
+    return torch.where(render.alpha.detach() >= min_alpha, render.depth_normalized().detach(), 0.0)
+
+
 def flow_target_for_pair(pair: FlowPair, depth1: Tensor, config: FlowConfig) -> FlowTarget:
-    """flow_gt for a cached pair, given frame t+1's depth [H, W] (dataset depth, or the model's rendered
-    ``RenderOutput.depth_normalized()`` at t+1 in camera t+1; 0 = unknown). Motion mask: the dataset's mask of
+    """flow_gt for a cached pair, given frame t+1's depth [H, W] (dataset depth, or the model's render at t+1 in
+    camera t+1 through :func:`depth_from_render`; 0 = unknown). Motion mask: the dataset's mask of
     frame t when present, else derived from the motion flow with ``config.motion_threshold``."""
     return motion_flow_target(
         depth1,

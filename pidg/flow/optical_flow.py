@@ -10,6 +10,7 @@ used TV-L1 for its synthetic data; both ~0.5 s per pair), and RAFT only from wei
 from __future__ import annotations
 
 import hashlib
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,18 +90,23 @@ def _sha1_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _load_raft(path: Path) -> torch.nn.Module:
-    """A TorchScript RAFT, or torchvision's ``raft_large`` filled with a state dict read from ``path``."""
-    try:
-        return torch.jit.load(str(path), map_location="cpu").eval()
-    except (RuntimeError, ValueError):
-        pass  # not TorchScript: try a torchvision state dict
+def _load_raft(path: Path) -> Callable[..., Any]:
+    """RAFT from a local file: a ``torch.export`` program (``.pt2``), a TorchScript module, or a state dict for
+    torchvision's ``raft_large``. Called as ``model(image0, image1)`` on [1, 3, H, W] images in [-1, 1]."""
+    if path.suffix == ".pt2":
+        return torch.export.load(str(path)).module()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit is deprecated but still reads old files
+        try:
+            return torch.jit.load(str(path), map_location="cpu").eval()
+        except (RuntimeError, ValueError):
+            pass  # not TorchScript: try a torchvision state dict
     try:
         from torchvision.models.optical_flow import raft_large
     except ImportError as err:
         raise FlowEstimatorUnavailable(
-            f"{path} is not a TorchScript module, and loading a RAFT state dict needs torchvision "
-            "(pip install torchvision built for your torch)"
+            f"{path} is neither a torch.export (.pt2) nor a TorchScript RAFT, and loading a RAFT state dict needs "
+            "torchvision (pip install torchvision built for your torch)"
         ) from err
     model = raft_large(weights=None, progress=False)
     model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
@@ -112,8 +118,8 @@ def _raft_flow(path: Path | None) -> ImagePairFlow:
         where = "no path given" if path is None else f"{path} does not exist"
         raise FlowEstimatorUnavailable(
             f"estimator 'raft' needs RAFT weights on this machine ({where}); set --flow.raft_weights to a "
-            "TorchScript RAFT module or a torchvision raft_large state dict. Nothing is downloaded; "
-            "use --flow.estimator dis (default), deepflow or tvl1 otherwise."
+            "torch.export RAFT program (.pt2), a TorchScript RAFT or a torchvision raft_large state dict. Nothing is "
+            "downloaded; use --flow.estimator dis (default), deepflow or tvl1 otherwise."
         )
     model = _load_raft(Path(path))
 

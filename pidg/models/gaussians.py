@@ -40,6 +40,9 @@ class GaussianModelConfig:
     random_init_points: int = 100_000
     random_init_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     random_init_box_fraction: float = 0.33
+    # Keep at most this many points of a dataset point cloud (a seeded random subset; 0 = all). Dry Ice ships
+    # 100k points: on a CPU a 20-30k subset trains ~3x faster per step and densification adds detail back.
+    max_init_points: int = 0
     seed: int = 42
 
     def __post_init__(self) -> None:
@@ -49,11 +52,21 @@ class GaussianModelConfig:
             raise ValueError(f"GaussianModelConfig.sh_degree_interval must be >= 1, got {self.sh_degree_interval}")
         if not 0.0 < self.init_opacity < 1.0:
             raise ValueError(f"GaussianModelConfig.init_opacity must be in (0, 1), got {self.init_opacity}")
+        if self.max_init_points < 0:
+            raise ValueError(f"GaussianModelConfig.max_init_points must be >= 0 (0 = all), got {self.max_init_points}")
         if self.knn_neighbors < 1 or self.random_init_points < 1:
             raise ValueError("GaussianModelConfig.knn_neighbors and random_init_points must be >= 1")
         if isinstance(self.random_init_box, list):  # from a JSON/YAML config
             lo, hi = self.random_init_box
             self.random_init_box = (tuple(lo), tuple(hi))  # type: ignore[assignment]
+
+
+def subsample_points(points: PointCloud, max_points: int, seed: int) -> PointCloud:
+    """A seeded random subset of at most ``max_points`` points (all of them when ``max_points`` is 0)."""
+    if max_points <= 0 or len(points) <= max_points:
+        return points
+    keep = torch.randperm(len(points), generator=torch.Generator().manual_seed(seed))[:max_points].sort().values
+    return PointCloud(points.xyz[keep], None if points.rgb is None else points.rgb[keep])
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -311,7 +324,7 @@ class GaussianModel:
         """From the scene's point cloud if it has one, otherwise random points in a box around the scene."""
         config = config or GaussianModelConfig()
         if scene.points3d is not None and len(scene.points3d) > 0:
-            return cls.from_point_cloud(scene.points3d, config)
+            return cls.from_point_cloud(subsample_points(scene.points3d, config.max_init_points, config.seed), config)
         lo, hi = random_init_box(scene, config)
         return cls.from_random(lo, hi, config)
 

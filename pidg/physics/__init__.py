@@ -23,13 +23,19 @@ from pidg.physics.cmr import (
     stress_divergence,
 )
 from pidg.physics.config import PhysicsConfig
-from pidg.physics.jet import STRESS_COMPONENTS, SYMMETRIC_INDEX, FieldJet, jet_from_function, stress_matrix
+from pidg.physics.jet import (
+    STRESS_COMPONENTS,
+    SYMMETRIC_INDEX,
+    FieldJet,
+    jet_from_function,
+    stress_matrix,
+)
 
 if TYPE_CHECKING:
     from pidg.models.material_field import MaterialField
 
 
-def build_material_field(config: PhysicsConfig, bounds: object, num_particles: int) -> "MaterialField":
+def build_material_field(config: PhysicsConfig, bounds: object, num_particles: int) -> MaterialField:
     """The material field for ``GaussianModel.num_particles`` particles, normalised by ``bounds`` (a ``Bounds``,
     or points [P, 3]; use the same box as the deformation). Imported lazily: pidg.models imports this package."""
     from pidg.models.material_field import MaterialField

@@ -2,8 +2,10 @@
 
 ``python -m pidg.physics.bench`` prints a table (and ``--out FILE`` writes JSON). Variants, timed interleaved
 (the machine is shared and noisy, so only same-run ratios are meaningful):
-  * ``tangents``: the material field's hand-written forward-mode tangents (what training uses);
-  * ``tangents+ckpt``: the same with ``checkpoint_blocks`` (activations recomputed in backward);
+  * ``tangents``: the material field's hand-written forward-mode tangents (what training uses), in one block of M
+    and, if ``block_size`` < M, in blocks;
+  * ``tangents+ckpt``: the same in blocks of ``block_size`` with ``checkpoint_blocks`` (activations recomputed in
+    backward, so only one block's are alive at a time);
   * ``torch.func``: the same field differentiated by ``jet_from_function`` (four ``torch.func.jvp``).
 Peak memory is the RSS growth of one step in a fresh process (torch allocations are invisible to tracemalloc, and
 a long-lived process reuses freed memory).
@@ -15,9 +17,9 @@ import dataclasses
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -36,7 +38,6 @@ class CMRBenchConfig:
     samples: tuple[int, ...] = (1024, 2048, 4096)
     particles: tuple[int, ...] = (20_000, 200_000)  # N for the memory comparison (timing uses the first)
     variants: tuple[str, ...] = VARIANTS
-    block_sizes: tuple[int, ...] = ()  # also time ``tangents`` with these block sizes at the largest M
     repeats: int = 7
     seed: int = 0
     physics: PhysicsConfig = field(default_factory=lambda: PhysicsConfig(kind="cmr"))
@@ -100,8 +101,19 @@ def measure_peak_rss(n: int, physics: PhysicsConfig, variant: str = "tangents", 
     return float(result.stdout.strip().splitlines()[-1])
 
 
+def _cases(m: int, block: int, variants: tuple[str, ...]) -> list[tuple[str, int]]:
+    """(variant, block size) pairs at sample size M: plain variants in one block, checkpointing in blocks of
+    ``block`` (checkpointing a single block saves nothing: its activations are rebuilt all at once)."""
+    cases = [(v, m) for v in variants if v != "tangents+ckpt"]
+    if block < m:
+        cases.append(("tangents", block))
+    if "tangents+ckpt" in variants:
+        cases.append(("tangents+ckpt", min(block, m)))
+    return list(dict.fromkeys(cases))
+
+
 def bench_cmr(config: CMRBenchConfig | None = None, log: Callable[[str], None] = print) -> dict:
-    """Median forward + backward ms per (M, variant), and peak MiB per (N, M): the figures behind the defaults."""
+    """Median forward + backward ms per (M, variant, block), and peak MiB per (N, M, variant, block)."""
     config = config or CMRBenchConfig()
     base = config.physics
     log(f"torch threads {torch.get_num_threads()}; width {base.width}, depth {base.depth}, activation {base.activation}, "
@@ -109,28 +121,26 @@ def bench_cmr(config: CMRBenchConfig | None = None, log: Callable[[str], None] =
     n_time = config.particles[0]
     fns: dict[str, Callable[[], None]] = {}
     for m in config.samples:
-        physics = dataclasses.replace(base, samples=m, block_size=m)
-        for variant in config.variants:
-            fns[f"M={m} {variant}"] = _step_fn(n_time, physics, variant, config.seed)
-    m_max = max(config.samples)
-    for b in config.block_sizes:
-        fns[f"M={m_max} tangents block={b}"] = _step_fn(n_time, dataclasses.replace(base, samples=m_max, block_size=b), "tangents", config.seed)
+        for variant, block in _cases(m, base.block_size, config.variants):
+            physics = dataclasses.replace(base, samples=m, block_size=block)
+            fns[f"M={m} {variant} block={block}"] = _step_fn(n_time, physics, variant, config.seed)
+    m_default = dataclasses.replace(base, samples=min(config.samples), block_size=min(config.samples))
+    for n in config.particles[1:]:  # the same step with more particles: only drawing the subset grows with N
+        fns[f"N={n} M={m_default.samples} tangents"] = _step_fn(n, m_default, "tangents", config.seed)
     medians = _interleaved_medians(fns, {name: config.repeats for name in fns})
     timing = {name: 1e3 * s for name, s in medians.items()}
-    log(f"forward + backward, N = {n_time}, median of {config.repeats} interleaved runs:")
+    log(f"forward + backward, N = {n_time} unless stated, median of {config.repeats} interleaved runs:")
     for name, ms in timing.items():
-        log(f"  {name:<32}{ms:8.1f} ms")
+        log(f"  {name:<36}{ms:8.1f} ms")
     memory: dict[str, float] = {}
     log("peak RSS growth of one step (fresh process):")
     for n in config.particles:
         for m in config.samples:
-            for variant in ("tangents", "tangents+ckpt"):
-                if variant not in config.variants:
-                    continue
-                physics = dataclasses.replace(base, samples=m, block_size=m)
-                key = f"N={n} M={m} {variant}"
+            for variant, block in _cases(m, base.block_size, tuple(v for v in config.variants if v != "torch.func")):
+                physics = dataclasses.replace(base, samples=m, block_size=block)
+                key = f"N={n} M={m} {variant} block={block}"
                 memory[key] = measure_peak_rss(n, physics, variant, config.seed)
-                log(f"  {key:<36}{memory[key]:8.1f} MiB")
+                log(f"  {key:<44}{memory[key]:8.1f} MiB")
     return {"timing_ms": timing, "peak_mib": memory}
 
 
@@ -139,15 +149,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--samples", type=int, nargs="+", default=list(CMRBenchConfig.samples))
     parser.add_argument("--particles", type=int, nargs="+", default=list(CMRBenchConfig.particles))
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
-    parser.add_argument("--block-sizes", type=int, nargs="*", default=[])
+    parser.add_argument("--block-size", type=int, default=PhysicsConfig.block_size, help="blocks for checkpointing")
     parser.add_argument("--width", type=int, default=PhysicsConfig.width)
     parser.add_argument("--activation", default=PhysicsConfig.activation)
     parser.add_argument("--repeats", type=int, default=CMRBenchConfig.repeats)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
-    physics = PhysicsConfig(kind="cmr", width=args.width, activation=args.activation)
-    config = CMRBenchConfig(tuple(args.samples), tuple(args.particles), tuple(args.variants), tuple(args.block_sizes),
-                            args.repeats, physics=physics)
+    physics = PhysicsConfig(kind="cmr", width=args.width, activation=args.activation, block_size=args.block_size)
+    config = CMRBenchConfig(tuple(args.samples), tuple(args.particles), tuple(args.variants), args.repeats, physics=physics)
     result = bench_cmr(config)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,9 @@ Conventions (NOTES.md section 5), with the jet layout dv_dx[m, j, i] = d v_j / d
 ``block_size``. Only those M rows ever go through the network, so time and memory are independent of N apart from
 drawing the subset (paper supp. "Block-sampled CMR"). The paper frees each block's graph by calling backward per
 block; here the loss is one scalar the trainer adds to its total, and ``checkpoint_blocks`` is the equivalent:
-each block's activations are recomputed during backward instead of being stored.
+each block's activations are recomputed during backward instead of being stored. Measured peak RSS growth of one
+step (``pidg.physics.bench``): ~40 MiB at M = 1024 for both N = 20k and 200k; at M = 4096, 155 MiB in one block,
+110 MiB in blocks of 1024, 60 MiB in checkpointed blocks of 1024 (+15-30% time).
 """
 from __future__ import annotations
 
@@ -106,13 +108,16 @@ def cmr_loss(
     ``config.detach_positions``). t: float or [N] in [0, 1]. index [N]: ``GaussianModel.particle_index``.
     generator: the trainer's CPU generator for the subset (saved in checkpoints for reproducibility).
     """
-    n = positions.shape[0]
     if positions.dim() != 2 or positions.shape[1] != 3:
         raise ValueError(f"cmr_loss: positions must be [N, 3], got {list(positions.shape)}")
+    n = positions.shape[0]
     if index.shape != (n,):
         raise ValueError(f"cmr_loss: index must be [N] = [{n}], got {list(index.shape)}")
     if n == 0:
         raise ValueError("cmr_loss: no particles")
+    if not bool(torch.isfinite(positions.detach()).all()):  # all N rows: a broken deformation, sampled or not
+        bad = torch.nonzero(~torch.isfinite(positions.detach()).all(dim=1)).squeeze(1)
+        raise ValueError(f"cmr_loss: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
     times = times_column(t, n, positions)
     x = positions.detach() if config.detach_positions else positions
     rows = sample_rows(n, config.samples, generator)

@@ -26,9 +26,13 @@ class PhysicsConfig:
     # The paper names no warm-up. At step 0 the stress is exactly 0 and the velocity is tiny, so the residual and
     # its gradient into the positions are negligible until the field has learnt something: no warm-up needed.
     start: int = field(default=0, metadata=_help("first step at which CMR is applied (then on every step)"))
-    # M = 1024 keeps forward + backward within ~60 ms on 2 CPU cores at width 256 (see pidg/physics/bench.py).
+    # Budget: CMR may add ~30% to a ~250 ms CPU step at 20k Gaussians. At width 256, forward + backward measured
+    # 53-58 ms at M = 1024 and 114-143 ms at M = 2048 on 2 shared cores (python -m pidg.physics.bench), so
+    # M = 1024, about 5% of 20k Gaussians per step.
     samples: int = field(default=1024, metadata=_help("M: random particles per step that enter the residual"))
     block_size: int = field(default=1024, metadata=_help("particles per block of network evaluation"))
+    # Measured at M = 4096 in blocks of 1024: peak 155 -> 60 MiB for +15-30% time. Off by default: at M = 1024
+    # (one block) the peak is ~40 MiB and checkpointing a single block saves nothing.
     checkpoint_blocks: bool = field(
         default=False, metadata=_help("recompute each block's activations in backward instead of storing them")
     )

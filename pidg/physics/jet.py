@@ -6,8 +6,9 @@ the material field supplies one from its hand-written tangents, tests supply one
 """
 from __future__ import annotations
 
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -76,7 +77,9 @@ def jet_from_function(fn: FieldFunction, x: Tensor, t: Tensor | float) -> FieldJ
             tx[:, k] = 1.0
         else:
             tt.fill_(1.0)
-        (v, sigma), (dv, dsigma) = torch.func.jvp(fn, (x, times), (tx, tt))
+        with warnings.catch_warnings():  # torch's first forward-mode call scripts decompositions with a deprecated API
+            warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*", category=DeprecationWarning)
+            (v, sigma), (dv, dsigma) = torch.func.jvp(fn, (x, times), (tx, tt))
         derivatives.append((dv, dsigma))
     return FieldJet(
         v=v,

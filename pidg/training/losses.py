@@ -5,6 +5,7 @@ import torch
 from torch import Tensor
 
 from pidg.evaluation.metrics import ssim
+from pidg.training.fused_ssim import fused_ssim
 
 
 def l1_loss(pred: Tensor, gt: Tensor) -> Tensor:
@@ -15,7 +16,9 @@ def photometric_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2) -> tup
     """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H, W, 3] images; also returns the parts for logging."""
     l1 = l1_loss(pred, gt)
     if lambda_dssim > 0:
-        d_ssim = 1.0 - ssim(pred, gt, padding="zeros")
+        # the numba SSIM with its analytic backward on CPU (~2x faster than autograd), the reference elsewhere
+        value = fused_ssim(pred, gt) if pred.device.type == "cpu" else ssim(pred, gt, padding="zeros")
+        d_ssim = 1.0 - value
         total = (1.0 - lambda_dssim) * l1 + lambda_dssim * d_ssim
     else:
         d_ssim = torch.zeros((), dtype=pred.dtype)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -23,7 +24,10 @@ from pidg.config_tools import save_config, to_jsonable
 from pidg.data.scene import Frame, SceneData
 from pidg.evaluation.metrics import psnr
 from pidg.models.deformation import Bounds, build_deformation
+from pidg.flow import FlowCache, FlowPair, FlowTarget, LPFMResult, decode_flows, flow_target_for_pair, gaussian_flow_features, lpfm_loss, preprocess_flow
+from pidg.flow.lpfm import depth_from_render
 from pidg.models.gaussians import GaussianModel
+from pidg.physics import build_material_field, cmr_loss
 from pidg.render import RenderOutput, rasterize
 from pidg.training.checkpoint import atomic_torch_save, load_checkpoint, random_states, restore_random_states, seed_everything
 from pidg.training.config import TrainConfig
@@ -33,7 +37,7 @@ from pidg.training.optim import make_gaussian_optimizers, means_lr_at, set_lr
 
 logger = logging.getLogger(__name__)
 
-STEP_PHASES = ("deformation", "render", "loss", "backward", "optimizer", "densification")
+STEP_PHASES = ("deformation", "physics", "flow", "render", "loss", "backward", "optimizer", "densification")
 
 
 @dataclass
@@ -69,9 +73,20 @@ class Trainer:
         # Normalise deformation inputs by the box of the initial Gaussians, not the camera sphere: for D-NeRF-like
         # captures the sphere is ~3x the object, which wastes grid resolution and scales the warp 3x
         # (measured on bouncingballs at 200 px, 400 steps: 14 dB with the sphere, 22 dB with the box).
-        self.deformation = build_deformation(config.deformation, Bounds.from_points(self.model.params["means"].detach()))
+        bounds = Bounds.from_points(self.model.params["means"].detach())
+        self.deformation = build_deformation(config.deformation, bounds)
         self.gaussian_optimizers = make_gaussian_optimizers(self.model, config.gaussian_optim, self.extent)
         self.deformation_optimizer = self._make_deformation_optimizer()
+        # The material field (velocity, stress) exists when CMR or the flow loss needs it; it is evaluated at the
+        # deformed positions, in the deformation's box and on the same time axis t in [0, 1].
+        self.material_field = None
+        self.material_optimizers: dict[str, torch.optim.Optimizer] = {}
+        if config.physics.enabled or config.flow.enabled:
+            self.material_field = build_material_field(config.physics, bounds, self.model.num_particles)
+            self.material_optimizers = self.material_field.make_optimizers()
+        self.physics_generator = torch.Generator().manual_seed(config.optim.seed + 1)
+        self.flow_cache: FlowCache | None = self._load_flow_cache() if config.flow.enabled else None
+        self._flow_targets: dict[str, tuple[int, FlowTarget]] = {}  # frame name -> (step built, flow_gt)
         self.strategy = DensificationStrategy(self.model, self.gaussian_optimizers, self.extent, config.densify)
         self.frame_generator = torch.Generator().manual_seed(config.optim.seed)
         self._order: list[int] = []
@@ -97,6 +112,16 @@ class Trainer:
             return None
         return torch.optim.Adam(param_groups, betas=(0.9, 0.999), eps=1e-15)
 
+    def _load_flow_cache(self) -> FlowCache:
+        """Optical flow of consecutive training frames, computed once and cached next to the dataset (or in the run
+        folder when the dataset folder is missing or read-only)."""
+        root = Path(self.scene.root)
+        cache_root = None
+        if not (root.is_dir() and os.access(root, os.W_OK)):
+            cache_root = Path(self.config.output.dir) / "flow_cache"
+            logger.info("dataset folder %s is not writable: caching optical flow in %s", root, cache_root)
+        return preprocess_flow(self.scene, self.config.flow, cache_root, progress=self.config.output.progress)
+
     # ---- data -------------------------------------------------------------------------------------------
     def next_frame(self) -> Frame:
         """Training frames in a fresh random order each epoch, from a generator saved in checkpoints."""
@@ -121,12 +146,57 @@ class Trainer:
         means, quats, log_scales = self.gaussians_at(frame.time)
         return self._rasterize(means, quats, log_scales, frame, sh_degree)
 
-    def _rasterize(self, means: Tensor, quats: Tensor, log_scales: Tensor, frame: Frame, sh_degree: int | None = None) -> RenderOutput:
+    def _rasterize(
+        self, means: Tensor, quats: Tensor, log_scales: Tensor, frame: Frame, sh_degree: int | None = None, features: Tensor | None = None
+    ) -> RenderOutput:
         m = self.model
         return rasterize(
             means, quats, m.opacities, m.sh, frame.camera, log_scales=log_scales, background=self.background,
-            sh_degree=m.active_sh_degree if sh_degree is None else sh_degree, backend=self.config.backend,
+            sh_degree=m.active_sh_degree if sh_degree is None else sh_degree, backend=self.config.backend, features=features,
         )
+
+    # ---- flow (LPFM) ------------------------------------------------------------------------------------
+    def velocities(self, means: Tensor, t: float) -> Tensor:
+        """v [N, 3] of the material field at the Gaussians' positions at time t; zero for static Gaussians once
+        decoupled (they do not move, and evaluating the field only where it matters keeps the step cheap)."""
+        assert self.material_field is not None
+        index = self.model.particle_index
+        if not self.decoupled:
+            return self.material_field(means, t, index)[0]
+        dynamic = self.model.buffers["is_dynamic"]
+        v = means.new_zeros(means.shape)
+        if bool(dynamic.any()):
+            v = v.index_put((dynamic.nonzero().squeeze(1),), self.material_field(means[dynamic], t, index[dynamic])[0])
+        return v
+
+    def _flow_features(self, frame: Frame, state_t: tuple[Tensor, Tensor, Tensor], state_t1: tuple[Tensor, Tensor, Tensor], dt: float) -> Tensor:
+        """Gaussian-flow and velocity-flow channels [N, 8] for the render of ``frame`` (both times in its camera)."""
+        means, quats, log_scales = state_t
+        means1, quats1, log_scales1 = state_t1
+        v = self.velocities(means, frame.time)
+        return gaussian_flow_features(
+            frame.camera, means, quats, log_scales.exp(), self.model.opacities, means1, quats1, log_scales1.exp(), v, dt
+        )
+
+    def flow_target(self, pair: FlowPair, state_t1: tuple[Tensor, Tensor, Tensor], max_age: int = 1) -> FlowTarget:
+        """flow_gt of a pair: the decomposition needs frame t+1's depth, which comes from the model itself (a
+        no-grad render at t+1 in camera t+1; no dataset here ships depth maps). Reused while younger than
+        ``max_age`` steps (``flow.target_refresh_steps`` during training)."""
+        key = pair.frame0.name
+        cached = self._flow_targets.get(key)
+        if cached is not None and self.step - cached[0] < max_age:
+            return cached[1]
+        with torch.no_grad():
+            depth1 = depth_from_render(self._rasterize(*(x.detach() for x in state_t1), pair.frame1))
+        target = flow_target_for_pair(pair, depth1, self.config.flow)
+        self._flow_targets[key] = (self.step, target)
+        return target
+
+    def _lpfm(self, pair: FlowPair, state_t1: tuple[Tensor, Tensor, Tensor], out: RenderOutput, max_age: int = 1) -> LPFMResult:
+        """L_LPFM of a render (with flow feature channels) against the pair's motion-flow target."""
+        target = self.flow_target(pair, state_t1, max_age)
+        flow_g, flow_v, _ = decode_flows(out.features, out.alpha)
+        return lpfm_loss(flow_g, flow_v, target, out.alpha, self.config.flow)
 
     # ---- one step ---------------------------------------------------------------------------------------
     def train_step(self) -> dict[str, float]:
@@ -136,8 +206,14 @@ class Trainer:
         self.model.update_sh_degree(self.step)
         with timer.phase("deformation"):
             means, quats, log_scales = self.gaussians_at(frame.time)
+        pair = self.flow_cache.pair_starting_at(frame) if self.flow_cache is not None and cfg.flow.active(self.step) else None
+        flow_features = None
+        if pair is not None:
+            with timer.phase("flow"):
+                next_state = self.gaussians_at(pair.frame1.time)
+                flow_features = self._flow_features(frame, (means, quats, log_scales), next_state, pair.dt)
         with timer.phase("render"):
-            out = self._rasterize(means, quats, log_scales, frame)
+            out = self._rasterize(means, quats, log_scales, frame, features=flow_features)
         with timer.phase("loss"):
             gt = frame.image
             loss, parts = photometric_loss(out.rgb, gt, cfg.optim.lambda_dssim)
@@ -146,6 +222,17 @@ class Trainer:
                 if reg is not None:
                     loss = loss + reg
                     parts["deform_reg"] = float(reg.detach())
+        if cfg.physics.active(self.step) and self.material_field is not None:
+            with timer.phase("physics"):
+                cmr = cmr_loss(self.material_field, means, frame.time, self.model.particle_index, cfg.physics, self.physics_generator)
+                loss = loss + cfg.physics.lambda_cmr * cmr.loss
+                parts["cmr"] = float(cmr.loss.detach())
+                parts.update({f"cmr_{k}": float(v) for k, v in cmr.stats.items()})
+        if pair is not None:
+            with timer.phase("flow"):
+                lpfm = self._lpfm(pair, next_state, out, max_age=cfg.flow.target_refresh_steps)
+                loss = loss + cfg.flow.lambda_lpfm * lpfm.loss
+                parts.update({"lpfm": float(lpfm.loss.detach()), **{f"lpfm_{k}": v for k, v in lpfm.scalars().items()}})
         if not torch.isfinite(loss):
             raise FloatingPointError(f"training diverged at step {self.step}: loss is {float(loss)} ({parts})")
         self.strategy.step_pre_backward(out)
@@ -177,6 +264,41 @@ class Trainer:
             self.deformation_optimizer.step()
         if self.deformation_optimizer is not None:
             self.deformation_optimizer.zero_grad(set_to_none=True)
+        decay = 0.1 ** (self.step / max(cfg.optim.deformation_lr_decay_every, 1))  # same schedule as the deformation
+        for opt in self.material_optimizers.values():
+            for group in opt.param_groups:
+                group["lr"] = group["base_lr"] * decay
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+
+    @torch.no_grad()
+    def flow_end_point_errors(self) -> dict[str, float]:
+        """Mean end-point error (pixels) of the rendered Gaussian flow and velocity flow against flow_gt over all
+        consecutive training pairs (supervised pixels only). Works for every variant: the flow cache is built if
+        the run had none, and the velocity flow needs the material field (absent in the no-physics, no-flow run)."""
+        cache = self.flow_cache if self.flow_cache is not None else self._load_flow_cache()
+        sums: dict[str, float] = defaultdict(float)
+        pixels = 0
+        for k in range(len(cache)):
+            pair = cache.pair(k)
+            state_t, state_t1 = self.gaussians_at(pair.frame0.time), self.gaussians_at(pair.frame1.time)
+            if self.material_field is not None:
+                features = self._flow_features(pair.frame0, state_t, state_t1, pair.dt)
+            else:
+                means, quats, log_scales = state_t
+                means1, quats1, log_scales1 = state_t1
+                features = gaussian_flow_features(
+                    pair.frame0.camera, means, quats, log_scales.exp(), self.model.opacities, means1, quats1, log_scales1.exp()
+                )
+            out = self._rasterize(*state_t, pair.frame0, features=features)
+            result = self._lpfm(pair, state_t1, out)
+            n = result.valid_pixels
+            pixels += n
+            sums["gaussian_flow_epe"] += result.epe_gaussian * n
+            if result.epe_velocity is not None:
+                sums["velocity_flow_epe"] += result.epe_velocity * n
+            sums["target_flow_px"] += result.mean_target_px * n
+        return {k: v / max(pixels, 1) for k, v in sums.items()} | {"flow_supervised_pixels": float(pixels)}
 
     # ---- static / dynamic decoupling --------------------------------------------------------------------
     @torch.no_grad()
@@ -253,7 +375,16 @@ class Trainer:
             "stopped_by_time_budget": stopped_by_budget,
             "step_breakdown_ms": self.timer.breakdown_ms(),
             "last": self.history[-1] if self.history else {},
+            **self._loss_trace("cmr"),
         }
+
+    def _loss_trace(self, key: str) -> dict:
+        """``{key}_final`` (mean of the last 10 % of the logged values) and ``{key}_history`` [(step, value)]."""
+        trace = [(h["step"], h[key]) for h in self.history if key in h]
+        if not trace:
+            return {}
+        tail = trace[-max(1, len(trace) // 10):]
+        return {f"{key}_final": sum(v for _, v in tail) / len(tail), f"{key}_history": trace}
 
     @torch.no_grad()
     def _preview(self, writer) -> None:
@@ -274,6 +405,9 @@ class Trainer:
             "deformation": self.deformation.state_dict(),
             "gaussian_optimizers": {k: v.state_dict() for k, v in self.gaussian_optimizers.items()},
             "deformation_optimizer": None if self.deformation_optimizer is None else self.deformation_optimizer.state_dict(),
+            "material_field": None if self.material_field is None else self.material_field.state_dict(),
+            "material_optimizers": {k: v.state_dict() for k, v in self.material_optimizers.items()},
+            "physics_generator": self.physics_generator.get_state(),
             "strategy": self.strategy.state_dict(),
             "random": random_states(),
             "frame_generator": self.frame_generator.get_state(),
@@ -292,6 +426,14 @@ class Trainer:
             opt.load_state_dict(state["gaussian_optimizers"][name])
         if self.deformation_optimizer is not None and state["deformation_optimizer"] is not None:
             self.deformation_optimizer.load_state_dict(state["deformation_optimizer"])
+        if self.material_field is not None:
+            if state.get("material_field") is None:
+                raise RuntimeError("checkpoint has no material field, but this config needs one (physics or flow is on)")
+            self.material_field.load_state_dict(state["material_field"])
+            for name, opt in self.material_optimizers.items():
+                opt.load_state_dict(state["material_optimizers"][name])
+        if "physics_generator" in state:
+            self.physics_generator.set_state(state["physics_generator"])
         self.strategy.load_state_dict(state["strategy"])
         restore_random_states(state["random"])
         self.frame_generator.set_state(state["frame_generator"])

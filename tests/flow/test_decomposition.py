@@ -74,7 +74,9 @@ def make_plane_scene(cam0: Camera, cam1: Camera, d: tuple[float, float]) -> Plan
     forward = project(cam1, x0_next) - pixel_centers(H, W, F64)
     expected = torch.where(on_disk0.unsqueeze(-1), project(cam0, x0_next) - project(cam0, x0), 0.0)
     margin = 0.2  # world units (~2-3 pixels): bilinear lookups on the disk never mix in the static plane
-    return PlaneScene(depth1, forward, backward, expected, on_disk0, (dist0 - RADIUS).abs() > margin)
+    # clean: away from the disk's rim at t, and (for static points) from where its rim passes at t+1
+    clean = ((dist0 - RADIUS).abs() > margin) & (on_disk0 | ((x0 - CENTER_T1).norm(dim=-1) - RADIUS).abs().gt(margin))
+    return PlaneScene(depth1, forward, backward, expected, on_disk0, clean)
 
 
 CAM0 = cam((0.5, -3.0, 2.2))

@@ -133,7 +133,7 @@ def test_rendered_flow_of_translating_gaussian(backend: str):
     g1 = {**g0, "means": g0["means"] + torch.tensor([[0.12, -0.07, 0.0]], dtype=F64)}
     out, (flow_g, flow_v, valid) = render_flows(cam, g0, g1, backend=backend)
     assert flow_v is None and flow_g.shape == (H, W, 2)
-    expected, a = closed_form(cam, g0, g1)
+    expected, _ = closed_form(cam, g0, g1)
     seen = out.alpha > 0.02
     assert seen.sum() > 50 and valid[seen].all()
     torch.testing.assert_close(flow_g[seen], expected[seen], rtol=1e-6, atol=1e-6)
@@ -195,7 +195,7 @@ def test_two_gaussians_flow_is_normalised_weighted_average():
     one_hot = torch.eye(2, dtype=F64)
     out = rasterize(g0["means"], g0["quats"], g0["opacities"], torch.ones(2, 3, dtype=F64), cam,
                     scales=g0["scales"], features=torch.cat([feats, one_hot], dim=-1), backend="torch")
-    flow_g, _, valid = decode_flows(out.features[..., :6], out.alpha)
+    flow_g, _, _ = decode_flows(out.features[..., :6], out.alpha)
     weights = out.features[..., 6:8]  # w_i per pixel
     per_gaussian = []
     for i in range(2):

@@ -10,7 +10,14 @@ import pytest
 import torch
 
 from pidg.data.scene import Frame, PointCloud, SceneBounds, SceneData
-from pidg.models.gaussians import GaussianModel, GaussianModelConfig, knn_init_scales, knn_sq_dists, random_init_box
+from pidg.models.gaussians import (
+    GaussianModel,
+    GaussianModelConfig,
+    knn_init_scales,
+    knn_sq_dists,
+    random_init_box,
+    subsample_points,
+)
 from pidg.render import rasterize
 from pidg.render.scenes import orbit_camera
 from pidg.render.sh import sh_to_rgb
@@ -103,6 +110,18 @@ def _scene(points: PointCloud | None) -> SceneData:
     bounds = SceneBounds(torch.tensor([0.0, 0.0, 1.5]), 4.7)
     return SceneData(root=Path("scene"), kind="blender", splits={"train": frames},
                      background=torch.zeros(3), bounds=bounds, time_source="json", points3d=points)
+
+
+def test_subsample_points_is_a_seeded_subset():
+    g = torch.Generator().manual_seed(0)
+    cloud = PointCloud(torch.randn(1000, 3, generator=g), torch.rand(1000, 3, generator=g))
+    assert subsample_points(cloud, 0, seed=1) is cloud and subsample_points(cloud, 5000, seed=1) is cloud
+    a, b = subsample_points(cloud, 300, seed=1), subsample_points(cloud, 300, seed=1)
+    assert len(a) == 300 and torch.equal(a.xyz, b.xyz)
+    rows = (a.xyz[:, None, :] == cloud.xyz[None, :, :]).all(-1).nonzero()[:, 1]
+    assert len(rows.unique()) == 300 and torch.equal(a.rgb, cloud.rgb[rows])
+    with pytest.raises(ValueError, match="max_init_points"):
+        GaussianModelConfig(max_init_points=-1)
 
 
 def test_random_initialisation_in_the_box_the_cameras_look_at():

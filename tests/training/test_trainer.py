@@ -37,7 +37,7 @@ def test_training_reduces_the_loss_and_densifies(scene, tmp_path):
     assert sum(losses[-10:]) / 10 < 0.9 * sum(losses[:10]) / 10
     assert torch.equal(scene.points3d.xyz, points_before)  # training never writes into the dataset
     assert summary["gaussians"] != 400  # densification and pruning ran
-    assert set(summary["step_breakdown_ms"]) == {"deformation", "render", "loss", "backward", "optimizer", "densification"}
+    assert set(summary["step_breakdown_ms"]) == {"deformation", "render", "loss", "backward", "optimizer", "densification"}  # no physics, no flow
     assert (tmp_path / "checkpoint.pt").is_file() and (tmp_path / "config.json").is_file()
     assert trainer.decoupled  # the procedural scene has motion masks
 
@@ -58,3 +58,42 @@ def test_resume_matches_an_uninterrupted_run(scene, tmp_path):
     assert torch.equal(full.model.particle_index, resumed.model.particle_index)
     for (n1, a), (n2, b) in zip(full.deformation.state_dict().items(), resumed.deformation.state_dict().items()):
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), n1
+
+
+def physics_flow_config(out_dir, iterations=10) -> TrainConfig:
+    cfg = tiny_config(out_dir, iterations)
+    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=64, block_size=32, width=16, embedding_dim=8)
+    cfg.flow = dataclasses.replace(cfg.flow, kind="lpfm")
+    cfg.output = dataclasses.replace(cfg.output, log_every=1)
+    # opaque from the start, so that a few steps already render depth and flow where the target is defined
+    cfg.gaussians = dataclasses.replace(cfg.gaussians, init_opacity=0.8)
+    cfg.densify = dataclasses.replace(cfg.densify, opacity_reset_every=1000)
+    return cfg
+
+
+def test_full_pidg_step_adds_cmr_and_lpfm_and_trains_the_material_field(scene, tmp_path):
+    trainer = Trainer(physics_flow_config(tmp_path), scene)
+    before = {k: v.detach().clone() for k, v in trainer.material_field.state_dict().items()}
+    summary = trainer.train()
+    logged = trainer.history[-1]
+    assert "cmr" in logged and logged["cmr"] >= 0.0
+    assert any(h.get("lpfm_valid_pixels", 0) > 0 for h in trainer.history)  # supervised on some steps
+    assert {"physics", "flow"} <= set(summary["step_breakdown_ms"])
+    assert "cmr_final" in summary and len(summary["cmr_history"]) == 10
+    changed = [k for k, v in trainer.material_field.state_dict().items() if not torch.equal(v, before[k])]
+    assert any("planes" in k for k in changed) and any("head_velocity" in k for k in changed)
+    errors = trainer.flow_end_point_errors()
+    assert errors["flow_supervised_pixels"] > 0 and errors["velocity_flow_epe"] >= 0.0
+
+
+def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path):
+    full = Trainer(physics_flow_config(tmp_path / "full", iterations=8), scene)
+    full.train()
+    half = Trainer(physics_flow_config(tmp_path / "half", iterations=8), scene)
+    half.train(iterations=5)
+    resumed = Trainer.from_checkpoint(tmp_path / "half" / "checkpoint.pt", scene)
+    resumed.train()
+    for (name, a), (_, b) in zip(full.material_field.state_dict().items(), resumed.material_field.state_dict().items()):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), name
+    for name, p in full.model.params.items():
+        assert torch.allclose(p, resumed.model.params[name], atol=1e-5, rtol=1e-4), name

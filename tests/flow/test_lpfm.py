@@ -1,0 +1,95 @@
+"""The LPFM loss: values in pixels, valid-pixel averaging, explicit [H, W, 2] shapes on a non-square image."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+import pidg  # noqa: F401
+from pidg.flow.config import FlowConfig
+from pidg.flow.decomposition import FlowTarget
+from pidg.flow.lpfm import end_point_error, lpfm_loss
+
+H, W = 5, 7  # non-square: a [2, H, W] / [H, W, 2] mix-up cannot pass the shape checks
+
+
+def setup(valid_rows: slice = slice(0, 3)) -> tuple[FlowTarget, torch.Tensor]:
+    gt = torch.zeros(H, W, 2)
+    gt[..., 0] = torch.arange(W, dtype=torch.float32)  # varies along x only: transposes would show
+    gt[..., 1] = -2.0
+    valid = torch.zeros(H, W, dtype=torch.bool)
+    valid[valid_rows] = True
+    return FlowTarget(gt * valid.unsqueeze(-1), valid), torch.ones(H, W)
+
+
+def test_loss_is_weighted_l1_in_pixels_over_valid_pixels():
+    target, alpha = setup()
+    config = FlowConfig(lambda_gaussian=0.5, lambda_velocity=0.25)
+    offset_g = torch.tensor([1.0, -2.0])  # |dx| + |dy| = 3 per pixel, EPE sqrt(5)
+    offset_v = torch.tensor([0.0, 4.0])
+    flow_g = (target.flow + offset_g).requires_grad_(True)
+    flow_v = (target.flow + offset_v).requires_grad_(True)
+    flow_g_far = flow_g.detach().clone()
+    flow_g_far[~target.valid] = 1e6  # unsupervised pixels do not count, whatever they hold
+    result = lpfm_loss(flow_g, flow_v, target, alpha, config)
+    assert result.loss.item() == pytest.approx(0.5 * 3.0 + 0.25 * 4.0)
+    assert result.epe_gaussian == pytest.approx(5**0.5) and result.epe_velocity == pytest.approx(4.0)
+    assert result.valid_pixels == 3 * W
+    assert lpfm_loss(flow_g_far, flow_v, target, alpha, config).loss.item() == pytest.approx(result.loss.item())
+    result.loss.backward()
+    assert flow_g.grad is not None and flow_v.grad is not None
+    assert (flow_g.grad[~target.valid] == 0).all()
+    # d/dflow of mean |.|: sign / (number of valid pixels), no clamping anywhere
+    torch.testing.assert_close(flow_g.grad[target.valid], (0.5 * torch.sign(offset_g) / (3 * W)).expand(3 * W, 2))
+    assert set(result.scalars()) >= {"lpfm", "epe_gaussian", "epe_velocity", "valid_pixels"}
+
+
+def test_large_flows_are_not_clamped():
+    target, alpha = setup()
+    result = lpfm_loss(target.flow + 50.0, None, target, alpha, FlowConfig(lambda_gaussian=1.0))
+    assert result.loss.item() == pytest.approx(100.0)
+    assert result.epe_velocity is None
+
+
+def test_low_alpha_pixels_are_excluded():
+    target, alpha = setup()
+    alpha[0] = 0.01
+    config = FlowConfig(min_alpha=0.05)
+    flow_g = target.flow.clone()
+    flow_g[0] += 10.0  # wrong, but where nothing was rendered
+    result = lpfm_loss(flow_g, None, target, alpha, config)
+    assert result.loss.item() == 0.0 and result.valid_pixels == 2 * W
+
+
+def test_no_valid_pixel_gives_a_connected_zero():
+    target, alpha = setup(valid_rows=slice(0, 0))
+    flow_g = torch.ones(H, W, 2, requires_grad=True)
+    result = lpfm_loss(flow_g, flow_g, target, alpha, FlowConfig())
+    assert result.loss.item() == 0.0 and result.valid_pixels == 0 and result.epe_gaussian == 0.0
+    result.loss.backward()
+    assert flow_g.grad is not None and (flow_g.grad == 0).all()
+
+
+def test_channel_first_flows_are_rejected():
+    target, alpha = setup()
+    with pytest.raises(ValueError, match=r"flow_gaussian must be \[H, W, 2\]"):
+        lpfm_loss(target.flow.permute(2, 0, 1), None, target, alpha, FlowConfig())
+    with pytest.raises(ValueError, match="flow_velocity"):
+        lpfm_loss(target.flow, target.flow.transpose(0, 1), target, alpha, FlowConfig())
+    with pytest.raises(ValueError, match="alpha"):
+        lpfm_loss(target.flow, None, target, alpha.T, FlowConfig())
+    with pytest.raises(ValueError, match="flow_gt"):
+        lpfm_loss(target.flow, None, FlowTarget(target.flow.permute(2, 0, 1), target.valid), alpha, FlowConfig())
+
+
+def test_end_point_error():
+    gt = torch.zeros(H, W, 2)
+    flow = torch.zeros(H, W, 2)
+    flow[..., 0], flow[..., 1] = 3.0, 4.0
+    assert end_point_error(flow, gt).item() == pytest.approx(5.0)
+    valid = torch.zeros(H, W, dtype=torch.bool)
+    flow[0, 0] = 0.0
+    valid[0, 0] = True
+    assert end_point_error(flow, gt, valid).item() == 0.0
+    assert end_point_error(flow, gt, torch.zeros(H, W, dtype=torch.bool)).item() == 0.0
+    with pytest.raises(ValueError):
+        end_point_error(flow.permute(2, 0, 1), gt)
