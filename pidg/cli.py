@@ -42,6 +42,19 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    import json
+
+    from pidg.flow import run_preprocess
+
+    config = _train_config(args)
+    if not str(config.data.path):
+        raise SystemExit("pidg preprocess: give the dataset folder with --data.path DIR")
+    summary = run_preprocess(config.data, config.flow, Path(args.cache_root) if args.cache_root else None)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from pidg.pipeline import evaluate_run
 
@@ -63,7 +76,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from pidg.pipeline import run_demo
 
-    run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes)
+    run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes, physics=args.physics, flow=args.flow)
     return 0
 
 
@@ -103,6 +116,16 @@ def _add_preset_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _cmd_bench_step(args: argparse.Namespace) -> int:
+    from pidg.evaluation.bench_step import run_step_bench
+
+    run_step_bench(
+        Path(args.scene), _train_config(args), args.variants, args.downscale, args.gaussians, args.iterations,
+        out=Path(args.out) if args.out else None,
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from pidg.config_tools import add_config_arguments
     from pidg.training.config import TrainConfig
@@ -116,6 +139,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_preset_argument(train)
     add_config_arguments(train, TrainConfig)
     train.set_defaults(func=_cmd_train)
+
+    pre = sub.add_parser(
+        "preprocess", help="optical flow of consecutive training frames (forward, backward, consistency), cached on disk"
+    )
+    pre.add_argument("--cache-root", default=None, help="cache folder (default: DATASET/<flow.cache_dir>)")
+    pre.add_argument("--config", help="a config.json to start from")
+    pre.set_defaults(func=_cmd_preprocess, preset="auto")
+    add_config_arguments(pre, TrainConfig)
 
     ev = sub.add_parser("eval", help="metrics of a trained run on a split (JSON in RUN/eval_SPLIT)")
     ev.add_argument("run", help="the run's output folder")
@@ -133,6 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="outputs/demo", help="output folder")
     demo.add_argument("--iterations", type=int, default=1200)
     demo.add_argument("--minutes", type=float, default=5.0, help="training time budget (stops early, with a checkpoint)")
+    demo.add_argument("--physics", choices=["none", "cmr"], default="none", help="add the Cauchy momentum residual")
+    demo.add_argument("--flow", choices=["none", "lpfm"], default="none", help="add flow matching (optical flow is computed first)")
     demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks (not tests)")
@@ -152,11 +185,30 @@ def build_parser() -> argparse.ArgumentParser:
     _add_preset_argument(quality)
     add_config_arguments(quality, TrainConfig)
     quality.set_defaults(func=_cmd_bench_quality)
+    step = bench_sub.add_parser("step", help="training-step rate and its breakdown per variant, interleaved, fixed Gaussian count")
+    step.add_argument("scene", help="dataset folder")
+    step.add_argument("--variants", nargs="+", default=["base", "cmr", "full"])
+    step.add_argument("--downscale", default="400x400")
+    step.add_argument("--gaussians", type=int, default=20_000, help="Gaussians (random init / subsampled cloud), no densification")
+    step.add_argument("--iterations", type=int, default=60, help="timed steps per variant (after 10 warm-up steps)")
+    step.add_argument("--out", default="outputs/bench/step.json")
+    step.add_argument("--config", help="a config.json to start from")
+    _add_preset_argument(step)
+    add_config_arguments(step, TrainConfig)
+    step.set_defaults(func=_cmd_bench_step)
+    # parsed by pidg.physics.bench itself (see main): listed here for `pidg bench -h`
+    bench_sub.add_parser("cmr", help="CMR loss cost: time per sample size, peak memory at 20k vs 200k particles", add_help=False)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:2] == ["bench", "cmr"]:
+        from pidg.physics.bench import main as bench_cmr
+
+        bench_cmr(argv[2:])
+        return 0
     args = build_parser().parse_args(argv)
     return args.func(args)
 

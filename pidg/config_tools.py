@@ -56,7 +56,10 @@ def parse_value(text: str, tp: Any, name: str) -> Any:
             raise ValueError(f"expected one of {', '.join(map(str, choices))}")
         if origin in (tuple, list):
             args = get_args(inner)
-            parts = [p for p in text.replace(",", " ").split() if p]
+            sep = text.replace(",", " ")
+            if args and all(a is int for a in args if a is not Ellipsis):
+                sep = sep.replace("x", " ")  # sizes: "400x400"
+            parts = [p for p in sep.split() if p]
             if origin is tuple and len(args) == 2 and args[1] is Ellipsis:
                 return tuple(parse_value(p, args[0], name) for p in parts)
             if origin is tuple:

@@ -232,7 +232,7 @@ class Trainer:
             with timer.phase("flow"):
                 lpfm = self._lpfm(pair, next_state, out, max_age=cfg.flow.target_refresh_steps)
                 loss = loss + cfg.flow.lambda_lpfm * lpfm.loss
-                parts.update({"lpfm": float(lpfm.loss.detach()), **{f"lpfm_{k}": v for k, v in lpfm.scalars().items()}})
+                parts.update({k if k == "lpfm" else f"lpfm_{k}": v for k, v in lpfm.scalars().items()})
         if not torch.isfinite(loss):
             raise FloatingPointError(f"training diverged at step {self.step}: loss is {float(loss)} ({parts})")
         self.strategy.step_pre_backward(out)

@@ -30,11 +30,20 @@ class Outer:
 def test_cli_overrides_and_json_round_trip(tmp_path):
     parser = argparse.ArgumentParser()
     add_config_arguments(parser, Outer)
-    args = parser.parse_args(["--steps", "5", "--inner.mode", "b", "--inner.size", "400x300".replace("x", ","), "--flag", "true", "--maybe.rate", "2"])
+    args = parser.parse_args(["--steps", "5", "--inner.mode", "b", "--inner.size", "400x300", "--flag", "true", "--maybe.rate", "2"])
     cfg = apply_overrides(Outer(), overrides_from_args(args))
     assert cfg == Outer(steps=5, flag=True, inner=Inner(mode="b", size=(400, 300)), maybe=Inner(rate=2.0))
     save_config(cfg, tmp_path / "c.json")
     assert load_config(Outer, tmp_path / "c.json") == cfg
+
+
+def test_sizes_parse_with_x_but_names_keep_it():
+    @dataclass
+    class Names:
+        nets: tuple[str, ...] = ("vgg",)
+
+    assert apply_overrides(Outer(), {"inner.size": "2.5"}).inner.size == 2.5
+    assert apply_overrides(Names(), {"nets": "alex,vgg"}).nets == ("alex", "vgg")
 
 
 @pytest.mark.parametrize("override,match", [({"inner.mode": "c"}, "one of a, b"), ({"steps": "x"}, "--steps"), ({"rate": "1"}, "did you mean inner.rate")])

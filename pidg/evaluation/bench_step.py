@@ -1,0 +1,97 @@
+"""``pidg bench step``: training-step rate and where a step's time goes, for several variants in one run.
+
+The Gaussian count is held fixed (no densification) so variants are compared on equal work, and the variants'
+steps are interleaved in chunks so each sees the same machine load (this class of machine is shared and noisy).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Callable
+
+from pidg.config_tools import apply_overrides
+from pidg.data import load_scene
+from pidg.data.scene import parse_downscale
+from pidg.evaluation.bench_quality import VARIANTS
+from pidg.training.config import TrainConfig
+
+
+def run_step_bench(
+    scene_path: Path,
+    base: TrainConfig,
+    variants: list[str],
+    downscale: str | None = "400x400",
+    gaussians: int = 20_000,
+    iterations: int = 60,
+    warmup: int = 10,
+    chunk: int = 10,
+    out: Path | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, dict]:
+    """Train each variant for ``warmup`` steps (compilation, caches), then ``iterations`` timed steps in
+    interleaved chunks; report it/s and the per-phase breakdown (ms per step)."""
+    from pidg.training.trainer import Trainer
+
+    data = dataclasses.replace(base.data, path=scene_path, progress=False)
+    if downscale:
+        data = dataclasses.replace(data, downscale=parse_downscale(downscale))
+    scene = load_scene(data)
+    common = dataclasses.replace(
+        base,
+        data=data,
+        gaussians=dataclasses.replace(base.gaussians, random_init_points=gaussians, max_init_points=gaussians),
+        densify=dataclasses.replace(base.densify, start=10**9, stop=10**9),
+    )
+    trainers = {}
+    for name in variants:
+        config = apply_overrides(common, VARIANTS[name])
+        config = dataclasses.replace(
+            config,
+            output=dataclasses.replace(config.output, dir=Path(base.output.dir) / f"bench_step_{name}", checkpoint_every=0, preview_every=0, progress=False),
+        )
+        trainer = Trainer(config, scene)
+        trainer.train(warmup)
+        trainer.timer.totals.clear()
+        trainer.timer.steps = 0
+        trainer.train_seconds = 0.0
+        trainers[name] = trainer
+    for _ in range(0, iterations, chunk):
+        for trainer in trainers.values():
+            trainer.train(trainer.step + chunk)
+    results = {}
+    for name, trainer in trainers.items():
+        summary = trainer.summary()
+        results[name] = {
+            "iterations_per_second": summary["iterations_per_second"],
+            "gaussians": summary["gaussians"],
+            "step_breakdown_ms": summary["step_breakdown_ms"],
+        }
+    log(format_step_table(results, f"{scene.name} {scene.train[0].width}x{scene.train[0].height}"))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(results, indent=2))
+    return results
+
+
+def format_step_table(results: dict[str, dict], title: str) -> str:
+    phases = sorted({p for r in results.values() for p in r["step_breakdown_ms"]}, key=_phase_order)
+    head = f"{'variant':<10}{'it/s':>7}{'ms/step':>9}{'Gaussians':>10}" + "".join(f"{p[:11]:>12}" for p in phases)
+    lines = [f"training step, {title}, interleaved (ms per step by phase):", head]
+    for name, r in results.items():
+        ms = r["step_breakdown_ms"]
+        lines.append(
+            f"{name:<10}{r['iterations_per_second']:>7.2f}{1e3 / max(r['iterations_per_second'], 1e-9):>9.1f}{r['gaussians']:>10}"
+            + "".join(f"{ms.get(p, 0.0):>12.1f}" for p in phases)
+        )
+    first = next(iter(results.values()))
+    for name, r in list(results.items())[1:]:
+        ratio = first["iterations_per_second"] / max(r["iterations_per_second"], 1e-9)
+        lines.append(f"  {name}: step time x{ratio:.2f} of {next(iter(results))}")
+    return "\n".join(lines)
+
+
+def _phase_order(phase: str) -> int:
+    from pidg.training.trainer import STEP_PHASES
+
+    return STEP_PHASES.index(phase) if phase in STEP_PHASES else len(STEP_PHASES)

@@ -1,0 +1,103 @@
+"""Pictures of what a trained run has learnt beyond colour: velocity and stress of the material field, the three
+flows of the flow loss side by side, and the static/dynamic split. Used by ``pidg render``.
+
+Everything is rendered through the ordinary rasterizer with extra per-Gaussian feature channels, so a pixel shows
+the compositing-weighted average over the Gaussians it sees (divided by alpha).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from pidg.data.scene import Frame
+from pidg.evaluation.flow_vis import flow_quiver, flow_rgb_tensor
+from pidg.evaluation.images import colorize_scalar
+from pidg.flow import FlowPair, decode_flows
+
+MIN_ALPHA = 0.5  # pixels less opaque than this show no field value (they mix surface and background)
+
+
+@dataclass
+class FieldImages:
+    """[H, W, 3] float images in [0, 1] of one view at one time, and the scalars their colour scales used."""
+
+    velocity: Tensor  # projected velocity (pixels per unit of dt) on the flow colour wheel
+    quiver: Tensor  # the same as arrows over the rendered image
+    stress: Tensor  # Frobenius norm of sigma, colour ramp
+    max_velocity_px: float
+    max_stress: float
+
+
+def _per_pixel(features: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+    valid = alpha > MIN_ALPHA
+    return torch.where(valid.unsqueeze(-1), features / alpha.clamp_min(1e-6).unsqueeze(-1), 0.0), valid
+
+
+@torch.no_grad()
+def material_field_images(
+    trainer, frame: Frame, dt: float, max_velocity_px: float | None = None, max_stress: float | None = None
+) -> FieldImages:
+    """Velocity and stress of the material field at the Gaussians' positions at ``frame.time``, seen from its camera.
+
+    The projected velocity of a Gaussian is proj(x + v dt) - proj(x) in pixels; pass the same ``max_*`` for every
+    frame of a video so colours mean the same thing over time.
+    """
+    if trainer.material_field is None:
+        raise ValueError("this run has no material field (trained with --physics none --flow none)")
+    means, quats, log_scales = trainer.gaussians_at(frame.time)
+    v, sigma = trainer.material_field(means, frame.time, trainer.model.particle_index)
+    uv, _ = frame.camera.project_points(means)
+    uv_next, _ = frame.camera.project_points(means + v * dt)
+    stress = sigma[:, :3].square().sum(-1) + 2.0 * sigma[:, 3:].square().sum(-1)  # |sigma|_F^2 of the symmetric matrix
+    features = torch.cat([uv_next - uv, stress.sqrt().unsqueeze(-1)], dim=-1)
+    out = trainer._rasterize(means, quats, log_scales, frame, features=features)
+    values, valid = _per_pixel(out.features, out.alpha)
+    flow, stress_img = values[..., :2], values[..., 2]
+    vmax = max_velocity_px if max_velocity_px is not None else float(flow[valid].norm(dim=-1).max()) if valid.any() else 1.0
+    smax = max_stress if max_stress is not None else float(stress_img[valid].max()) if valid.any() else 1.0
+    rgb = out.rgb.clamp(0, 1)
+    quiver = flow_quiver(flow, rgb, step=max(8, frame.width // 24), scale=1.0, valid=valid, max_magnitude=vmax)
+    return FieldImages(
+        velocity=flow_rgb_tensor(flow, max(vmax, 1e-6), valid),
+        quiver=torch.from_numpy(quiver.copy()).float() / 255.0,
+        stress=colorize_scalar(stress_img, valid=valid, lo=0.0, hi=max(smax, 1e-12)),
+        max_velocity_px=vmax,
+        max_stress=smax,
+    )
+
+
+@torch.no_grad()
+def flow_comparison(trainer, pair: FlowPair, max_magnitude: float | None = None) -> tuple[Tensor, dict[str, float]]:
+    """[H, 3W, 3]: motion flow (flow_gt, black where unsupervised) | Gaussian flow | velocity flow, all on frame t's
+    pixels and one colour scale; and the end-point errors of the rendered flows on the supervised pixels."""
+    state_t = trainer.gaussians_at(pair.frame0.time)
+    state_t1 = trainer.gaussians_at(pair.frame1.time)
+    features = trainer._flow_features(pair.frame0, state_t, state_t1, pair.dt)
+    out = trainer._rasterize(*state_t, pair.frame0, features=features)
+    flow_g, flow_v, drawn = decode_flows(out.features, out.alpha)
+    target = trainer.flow_target(pair, state_t1)
+    result = trainer._lpfm(pair, state_t1, out)
+    scale = max_magnitude if max_magnitude is not None else float(target.flow[target.valid].norm(dim=-1).max()) if target.valid.any() else 1.0
+    scale = max(scale, 1e-6)
+    panels = [
+        flow_rgb_tensor(target.flow, scale, target.valid),
+        flow_rgb_tensor(flow_g, scale, drawn),
+        flow_rgb_tensor(flow_v, scale, drawn),
+    ]
+    errors = {"gaussian_flow_epe": result.epe_gaussian, "velocity_flow_epe": result.epe_velocity or float("nan")}
+    return torch.cat(panels, dim=1), errors
+
+
+@torch.no_grad()
+def dynamic_split_image(trainer, frame: Frame) -> Tensor:
+    """The render tinted by the decoupling: dynamic Gaussians red, static ones blue (weighted per pixel)."""
+    means, quats, log_scales = trainer.gaussians_at(frame.time)
+    dynamic = trainer.model.buffers["is_dynamic"].to(means.dtype).unsqueeze(-1)
+    out = trainer._rasterize(means, quats, log_scales, frame, features=dynamic)
+    share, _ = _per_pixel(out.features, out.alpha)
+    tint = torch.stack([share[..., 0], torch.zeros_like(share[..., 0]), 1.0 - share[..., 0]], dim=-1)
+    weight = (out.alpha > 0.05).to(tint.dtype).unsqueeze(-1) * 0.5
+    gray = out.rgb.clamp(0, 1).mean(-1, keepdim=True).expand(-1, -1, 3)
+    return gray * (1.0 - weight) + tint * weight

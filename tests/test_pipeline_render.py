@@ -1,0 +1,43 @@
+"""`pidg render` on a tiny full-PIDG run writes the physics and flow pictures next to the usual videos."""
+import dataclasses
+import json
+
+import pytest
+
+from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
+from pidg.data import DataConfig, load_scene
+from pidg.models.deformation import HashGridConfig
+from pidg.pipeline import render_run
+from pidg.training.config import TrainConfig
+from pidg.training.trainer import Trainer
+
+
+@pytest.fixture(scope="module")
+def full_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("render")
+    data_dir = write_procedural_dataset(
+        ProceduralSceneConfig(n_train=6, n_test=2, width=32, height=32, n_gaussians=800, n_init_points=300), root / "data"
+    )
+    cfg = TrainConfig(data=DataConfig(path=data_dir, progress=False))
+    cfg.deformation.grid4d = dataclasses.replace(
+        cfg.deformation.grid4d, spatial_grid=HashGridConfig(4, 2, 12, 4, 64), temporal_grid=HashGridConfig(4, 2, 12, 4, 16), width=16
+    )
+    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=64, width=16, embedding_dim=8)
+    cfg.flow = dataclasses.replace(cfg.flow, kind="lpfm")
+    cfg.densify = dataclasses.replace(cfg.densify, start=2, stop=6, every=2)
+    cfg.optim = dataclasses.replace(cfg.optim, iterations=8)
+    cfg.output = dataclasses.replace(cfg.output, dir=root / "run", checkpoint_every=0, progress=False, preview_every=0)
+    Trainer(cfg, load_scene(cfg.data)).train()
+    return root / "run"
+
+
+def test_render_writes_velocity_stress_flows_and_split(full_run):
+    videos = {p.name for p in render_run(full_run, "test", fps=4, n_time_steps=3)}
+    assert {"fixed_view_velocity.mp4", "fixed_view_velocity_quiver.mp4", "fixed_view_stress_magnitude.mp4",
+            "train_flows_motion_gaussian_velocity.mp4", "test_dynamic_red_static_blue.mp4"} <= videos
+    out = full_run / "render_test"
+    assert len(list((out / "flows_motion_gaussian_velocity").glob("*.png"))) == 5  # 6 training frames -> 5 pairs
+    scales = json.loads((out / "field_scales.json").read_text())
+    assert scales["dt"] == pytest.approx(0.2)
+    errors = json.loads((out / "flow_errors.json").read_text())
+    assert len(errors) == 5 and all(e["gaussian_flow_epe"] >= 0 for e in errors)
