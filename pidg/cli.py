@@ -121,7 +121,7 @@ def _cmd_bench_step(args: argparse.Namespace) -> int:
 
     run_step_bench(
         Path(args.scene), _train_config(args), args.variants, args.downscale, args.gaussians, args.iterations,
-        out=Path(args.out) if args.out else None,
+        out=Path(args.out) if args.out else None, from_run=Path(args.from_run) if args.from_run else None,
     )
     return 0
 
@@ -192,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     step.add_argument("--gaussians", type=int, default=20_000, help="Gaussians (random init / subsampled cloud), no densification")
     step.add_argument("--iterations", type=int, default=60, help="timed steps per variant (after 10 warm-up steps)")
     step.add_argument("--out", default="outputs/bench/step.json")
+    step.add_argument("--from-run", default=None, help="start from this run's trained Gaussians (its checkpoint) instead of a random init")
     step.add_argument("--config", help="a config.json to start from")
     _add_preset_argument(step)
     add_config_arguments(step, TrainConfig)

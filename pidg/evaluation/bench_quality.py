@@ -61,6 +61,7 @@ def run_quality_bench(
             )
             trainer = Trainer(config, scene)
             summary = trainer.train()
+            flow_errors = trainer.flow_end_point_errors() if config.flow.enabled or config.physics.enabled else {}
             metrics = evaluate_run(run_dir, "test", lpips_nets=nets)
             row = {
                 "scene": Path(path).name,
@@ -72,8 +73,9 @@ def run_quality_bench(
                 "gaussians": summary["gaussians"],
                 "step_breakdown_ms": summary["step_breakdown_ms"],
                 "cmr_final": summary.get("cmr_final"),
-                "velocity_flow_epe": summary.get("velocity_flow_epe"),
-                "gaussian_flow_epe": summary.get("gaussian_flow_epe"),
+                "velocity_flow_epe": flow_errors.get("velocity_flow_epe"),
+                "gaussian_flow_epe": flow_errors.get("gaussian_flow_epe"),
+                "target_flow_px": flow_errors.get("target_flow_px"),
             }
             rows.append(row)
             log(format_table(rows))

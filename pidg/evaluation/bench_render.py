@@ -8,8 +8,6 @@ from __future__ import annotations
 import json
 import os
 import statistics
-import subprocess
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -17,6 +15,7 @@ from typing import Callable
 
 import torch
 
+from pidg.evaluation.memory import peak_rss_growth_mib
 from pidg.render import rasterize
 from pidg.render.projection import project_gaussians
 from pidg.render.rasterize_cpu import bin_gaussians, count_pixel_gaussian_pairs
@@ -66,28 +65,19 @@ def _interleaved_medians(fns: dict[str, Callable[[], None]], repeats: dict[str, 
 
 
 def _peak_memory_mb(n_gaussians: int, size: int, seed: int, backend: str) -> float:
-    """Peak RSS growth (MiB) over one forward+backward, sampled every 0.5 ms in a fresh process: torch
-    allocations are invisible to tracemalloc, and in a long-lived process freed memory is reused."""
-    code = (
-        "import os, threading, time, pidg, torch\n"
+    """Peak RSS growth (MiB) over one forward+backward in a fresh process (NaN if the probe fails)."""
+    setup = (
         "from pidg.evaluation.bench_render import _render_fns\n"
         "from pidg.render.scenes import orbit_camera, random_scene\n"
-        "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
         "small = random_scene(50, orbit_camera(32, 32), seed=0)\n"
         f"_render_fns(small, 32, '{backend}')[1]()  # load kernels before the baseline\n"
         f"scene = random_scene({n_gaussians}, orbit_camera({size}, {size}), seed={seed})\n"
         f"fwd, fwd_bwd = _render_fns(scene, {size}, '{backend}')\n"
-        "base, peak, done = rss(), [0], threading.Event()\n"
-        "def sample():\n"
-        "    while not done.is_set():\n"
-        "        peak[0] = max(peak[0], rss()); time.sleep(0.0005)\n"
-        "th = threading.Thread(target=sample); th.start(); fwd_bwd(); done.set(); th.join()\n"
-        "print((max(peak[0], rss()) - base) / 2**20)\n"
     )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
-    if result.returncode != 0:
+    try:
+        return peak_rss_growth_mib(setup, "fwd_bwd()")
+    except RuntimeError:
         return float("nan")
-    return float(result.stdout.strip().splitlines()[-1])
 
 
 def _render_fns(scene: GaussianScene, size: int, backend: str) -> tuple[Callable[[], None], Callable[[], None]]:

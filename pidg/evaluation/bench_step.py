@@ -27,10 +27,16 @@ def run_step_bench(
     warmup: int = 10,
     chunk: int = 10,
     out: Path | None = None,
+    from_run: Path | None = None,
     log: Callable[[str], None] = print,
 ) -> dict[str, dict]:
     """Train each variant for ``warmup`` steps (compilation, caches), then ``iterations`` timed steps in
-    interleaved chunks; report it/s and the per-phase breakdown (ms per step)."""
+    interleaved chunks; report it/s and the per-phase breakdown (ms per step).
+
+    ``from_run``: start every variant from that run's trained Gaussians and deformation (its checkpoint) instead
+    of ``gaussians`` freshly initialised ones -- the realistic case: trained Gaussians are smaller and sparser
+    than a random initialisation, which overlaps heavily and costs the renderer several times more.
+    """
     from pidg.training.trainer import Trainer
 
     data = dataclasses.replace(base.data, path=scene_path, progress=False)
@@ -51,6 +57,8 @@ def run_step_bench(
             output=dataclasses.replace(config.output, dir=Path(base.output.dir) / f"bench_step_{name}", checkpoint_every=0, preview_every=0, progress=False),
         )
         trainer = Trainer(config, scene)
+        if from_run is not None:
+            _load_trained_gaussians(trainer, Path(from_run) / "checkpoint.pt")
         trainer.train(warmup)
         trainer.timer.totals.clear()
         trainer.timer.steps = 0
@@ -72,6 +80,21 @@ def run_step_bench(
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(results, indent=2))
     return results
+
+
+def _load_trained_gaussians(trainer, checkpoint: Path) -> None:
+    """Replace a fresh trainer's Gaussians and deformation by a checkpoint's (optimiser state starts fresh)."""
+    from pidg.training.checkpoint import load_checkpoint
+    from pidg.training.densification import DensificationStrategy
+    from pidg.training.optim import make_gaussian_optimizers
+
+    state = load_checkpoint(checkpoint)
+    trainer.model.load_state_dict(state["model"])
+    trainer.deformation.load_state_dict(state["deformation"])
+    trainer.decoupled = bool(state.get("decoupled", False))
+    trainer.step = int(state["step"])
+    trainer.gaussian_optimizers = make_gaussian_optimizers(trainer.model, trainer.config.gaussian_optim, trainer.extent)
+    trainer.strategy = DensificationStrategy(trainer.model, trainer.gaussian_optimizers, trainer.extent, trainer.config.densify)
 
 
 def format_step_table(results: dict[str, dict], title: str) -> str:

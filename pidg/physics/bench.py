@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import subprocess
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +25,7 @@ from torch import Tensor
 from pidg.evaluation.bench_render import _interleaved_medians
 from pidg.models.material_field import MaterialField
 from pidg.physics.cmr import cmr_loss
+from pidg.evaluation.memory import peak_rss_growth_mib
 from pidg.physics.config import PhysicsConfig
 from pidg.physics.jet import FieldJet, jet_from_function
 
@@ -80,25 +79,15 @@ def _step_fn(n: int, physics: PhysicsConfig, variant: str, seed: int) -> Callabl
 
 def measure_peak_rss(n: int, physics: PhysicsConfig, variant: str = "tangents", seed: int = 0) -> float:
     """Peak RSS growth (MiB) over one step at N particles, sampled every 0.5 ms in a fresh process."""
-    code = (
-        "import dataclasses, json, os, threading, time, pidg, torch\n"
+    setup = (
+        "import dataclasses, json\n"
         "from pidg.physics.bench import _step_fn\n"
         "from pidg.physics.config import PhysicsConfig\n"
-        "rss = lambda: int(open('/proc/self/statm').read().split()[1]) * os.sysconf('SC_PAGE_SIZE')\n"
         f"physics = PhysicsConfig(**json.loads({json.dumps(json.dumps(dataclasses.asdict(physics)))}))\n"
         f"_step_fn(64, dataclasses.replace(physics, samples=8, block_size=8), '{variant}', 0)()  # load kernels\n"
         f"step = _step_fn({n}, physics, '{variant}', {seed})\n"
-        "base, peak, done = rss(), [0], threading.Event()\n"
-        "def sample():\n"
-        "    while not done.is_set():\n"
-        "        peak[0] = max(peak[0], rss()); time.sleep(0.0005)\n"
-        "th = threading.Thread(target=sample); th.start(); step(); done.set(); th.join()\n"
-        "print((max(peak[0], rss()) - base) / 2**20)\n"
     )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
-    if result.returncode != 0:
-        raise RuntimeError(f"bench_cmr: memory probe failed:\n{result.stderr[-2000:]}")
-    return float(result.stdout.strip().splitlines()[-1])
+    return peak_rss_growth_mib(setup, "step()")
 
 
 def _cases(m: int, block: int, variants: tuple[str, ...]) -> list[tuple[str, int]]:
