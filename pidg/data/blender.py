@@ -6,6 +6,8 @@ Layout::
                                        or fl_x [, fl_y, cx, cy, w, h]; frames: file_path, time, transform_matrix
     <file_path>[.png]                  RGBA or RGB frames; file_path may omit the extension
     mask/<frame file name>.png         optional motion masks (nonzero = dynamic), PIDG scenes
+    depth/<frame file name>.npy        optional depth maps: float32 [H, W] camera z in scene units, 0 = unknown
+                                       (used by the flow decomposition instead of the model's rendered depth)
     points3d.ply                       optional initial point cloud, PIDG scenes
 
 ``transform_matrix`` is an OpenGL/Blender camera-to-world matrix; ``Camera.from_fov`` converts it. Intrinsic keys
@@ -266,6 +268,7 @@ def read_blender(config: DataConfig) -> SceneData:
 
     mask_dir = root / "mask"
     use_masks = config.load_masks and mask_dir.is_dir()
+    depth_dir = root / "depth"
     splits = {}
     for split in config.splits:
         chosen = select_subset(len(json_frames[split]), config.max_frames)
@@ -280,6 +283,7 @@ def read_blender(config: DataConfig) -> SceneData:
                     time=t,
                     make_camera=_camera_builder(f, image_path),
                     mask_path=mask_dir / f"{f.file_name}.png" if use_masks else None,
+                    depth_path=depth_dir / f"{f.file_name}.npy" if (depth_dir / f"{f.file_name}.npy").is_file() else None,
                 )
             )
         splits[split] = load_frames(specs, config, desc=f"{root.name}/{split}")
@@ -290,6 +294,7 @@ def read_blender(config: DataConfig) -> SceneData:
     centers = torch.stack([f.c2w[:3, 3] for f in bound_frames])
     info["layout"] = "pidg" if (mask_dir.is_dir() or points is not None) else "dnerf"
     info["masks"] = use_masks
+    info["depth_maps"] = depth_dir.is_dir()
     return SceneData(
         root=root,
         kind="blender",

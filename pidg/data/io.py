@@ -135,6 +135,7 @@ class FrameSpec:
     time: float
     make_camera: Callable[[int, int], Camera]
     mask_path: Path | None = None
+    depth_path: Path | None = None
 
 
 def _open_image(path: Path, kind: str = "image") -> Image.Image:
@@ -184,6 +185,29 @@ def decode_mask(path: Path) -> np.ndarray:
     return array > 0
 
 
+def decode_depth(path: Path) -> np.ndarray:
+    """[H, W] float32 camera-z depth in scene units from a ``.npy`` file; 0 = unknown (non-finite values too)."""
+    try:
+        depth = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise DatasetError(path, "depth file not found") from None
+    except (OSError, ValueError) as e:
+        raise DatasetError(path, f"cannot read depth map: {e}") from None
+    if depth.ndim == 3 and depth.shape[-1] == 1:
+        depth = depth[..., 0]
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+        raise DatasetError(path, f"depth map must be a 2D numeric array [H, W], got {depth.dtype} {list(depth.shape)}")
+    depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+    if (depth < 0).any():
+        raise DatasetError(path, "depth map has negative values (expected camera z >= 0, 0 = unknown)")
+    return depth
+
+
+def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize: averaging depths across an object boundary would invent surfaces."""
+    return np.asarray(Image.fromarray(depth).resize((width, height), Image.Resampling.NEAREST))
+
+
 def resize_rgb(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     """Resize a float image per channel (PIL mode "F", so no 8-bit rounding before the filter)."""
     channels = [
@@ -208,15 +232,24 @@ def _load_one(spec: FrameSpec, config: DataConfig) -> tuple[Frame, tuple[int, in
             raise DatasetError(
                 spec.mask_path, f"mask is {mask.shape[1]}x{mask.shape[0]} but its image is {width}x{height}"
             )
+    depth = None
+    if spec.depth_path is not None:
+        depth = decode_depth(spec.depth_path)
+        if depth.shape != (height, width):
+            raise DatasetError(
+                spec.depth_path, f"depth map is {depth.shape[1]}x{depth.shape[0]} but its image is {width}x{height}"
+            )
     tw, th = config.target_size(width, height)
     if (tw, th) != (width, height):
         rgb = resize_rgb(rgb, tw, th)
         camera = camera.resized(tw, th)
         mask = resize_mask(mask, tw, th) if mask is not None else None
+        depth = resize_depth(depth, tw, th) if depth is not None else None
     np.clip(np.rint(rgb, out=rgb), 0, 255, out=rgb)  # the Lanczos filter can overshoot
     image_u8 = torch.from_numpy(rgb.astype(np.uint8))
     mask_t = None if mask is None else torch.from_numpy(mask)
-    return Frame(camera, spec.time, image_u8, mask_t, spec.name, spec.image_path), (width, height)
+    depth_t = None if depth is None else torch.from_numpy(depth)
+    return Frame(camera, spec.time, image_u8, mask_t, spec.name, spec.image_path, depth_t), (width, height)
 
 
 def load_frames(specs: Sequence[FrameSpec], config: DataConfig, desc: str) -> list[Frame]:

@@ -156,6 +156,7 @@ class Frame:
     mask: Tensor | None = None  # [H, W] bool, True = dynamic (moving) pixel
     name: str = ""  # e.g. "train/0002" or a HyperNeRF item id
     path: Path | None = None  # the image file it came from
+    depth: Tensor | None = None  # [H, W] float32 camera-z depth from the dataset (0 = unknown), when it ships one
 
     @property
     def image(self) -> Tensor:

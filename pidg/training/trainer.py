@@ -179,15 +179,18 @@ class Trainer:
         )
 
     def flow_target(self, pair: FlowPair, state_t1: tuple[Tensor, Tensor, Tensor], max_age: int = 1) -> FlowTarget:
-        """flow_gt of a pair: the decomposition needs frame t+1's depth, which comes from the model itself (a
-        no-grad render at t+1 in camera t+1; no dataset here ships depth maps). Reused while younger than
+        """flow_gt of a pair: the decomposition needs frame t+1's depth: the dataset's depth map when it has one,
+        otherwise the model's own (a no-grad render at t+1 in camera t+1, detached). Reused while younger than
         ``max_age`` steps (``flow.target_refresh_steps`` during training)."""
         key = pair.frame0.name
         cached = self._flow_targets.get(key)
         if cached is not None and self.step - cached[0] < max_age:
             return cached[1]
-        with torch.no_grad():
-            depth1 = depth_from_render(self._rasterize(*(x.detach() for x in state_t1), pair.frame1))
+        if pair.frame1.depth is not None:  # the dataset's own depth map
+            depth1 = pair.frame1.depth
+        else:
+            with torch.no_grad():
+                depth1 = depth_from_render(self._rasterize(*(x.detach() for x in state_t1), pair.frame1))
         target = flow_target_for_pair(pair, depth1, self.config.flow)
         self._flow_targets[key] = (self.step, target)
         return target

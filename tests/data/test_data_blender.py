@@ -297,3 +297,24 @@ def test_missing_split_and_unknown_folder(tmp_path, synth):
         load_scene(cfg(tmp_path / "empty"))
     with pytest.raises(DatasetError, match="dataset folder not found"):
         load_scene(cfg(tmp_path / "nowhere"))
+
+
+def test_depth_maps_are_loaded_resized_and_checked(tmp_path, synth):
+    root = synth.make_blender(tmp_path / "s", width=16, height=12)
+    (root / "depth").mkdir()
+    for k in (1, 3, 5):
+        depth = np.full((12, 16), 2.0, np.float32)
+        depth[:, 8:] = 5.0
+        depth[0, 0] = np.nan  # unknown
+        np.save(root / "depth" / f"{k:04d}.npy", depth)
+    scene = load_scene(cfg(root, downscale=(8, 6)))
+    d = scene.train[0].depth
+    assert d is not None and d.shape == (6, 8) and d.dtype == torch.float32
+    assert set(d.unique().tolist()) <= {0.0, 2.0, 5.0} and d[:, :4].max() == 2.0 and d[:, 4:].min() == 5.0
+    assert scene.test[0].depth is None  # no depth file for the test frames: the model's depth is used
+    np.save(root / "depth" / "0003.npy", np.zeros((5, 5), np.float32))
+    with pytest.raises(DatasetError, match=r"0003\.npy.*depth map is 5x5"):
+        load_scene(cfg(root))
+    np.save(root / "depth" / "0003.npy", -np.ones((12, 16), np.float32))
+    with pytest.raises(DatasetError, match="negative"):
+        load_scene(cfg(root))

@@ -97,3 +97,18 @@ def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path):
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), name
     for name, p in full.model.params.items():
         assert torch.allclose(p, resumed.model.params[name], atol=1e-5, rtol=1e-4), name
+
+
+def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):
+    from pidg.flow import flow_target_for_pair
+
+    trainer = Trainer(physics_flow_config(tmp_path, iterations=1), scene)
+    pair = trainer.flow_cache.pair(0)
+    depth = torch.full((pair.frame1.height, pair.frame1.width), 3.5)
+    pair.frame1.depth = depth
+    try:
+        target = trainer.flow_target(pair, trainer.gaussians_at(pair.frame1.time))
+    finally:
+        pair.frame1.depth = None
+    expected = flow_target_for_pair(pair, depth, trainer.config.flow)
+    assert torch.equal(target.flow, expected.flow) and torch.equal(target.valid, expected.valid)
