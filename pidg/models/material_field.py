@@ -237,7 +237,9 @@ class MaterialField(nn.Module):
         dense = [group(name) for name in (GROUP_GRID, GROUP_MLP) if groups[name]]
         optimizers: dict[str, torch.optim.Optimizer] = {}
         if dense:
-            optimizers["material"] = torch.optim.Adam(dense, betas=betas, eps=eps)
+            from pidg.training.optim import adam  # fused when possible; imported here to keep models below training
+
+            optimizers["material"] = adam(dense, betas=betas, eps=eps)
         if groups[GROUP_EMBEDDING]:
             optimizers["material_embedding"] = torch.optim.SparseAdam([group(GROUP_EMBEDDING)], betas=betas, eps=eps)
         return optimizers

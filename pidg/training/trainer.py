@@ -33,7 +33,7 @@ from pidg.training.checkpoint import atomic_torch_save, load_checkpoint, random_
 from pidg.training.config import TrainConfig
 from pidg.training.densification import DensificationStrategy
 from pidg.training.losses import photometric_loss
-from pidg.training.optim import make_gaussian_optimizers, means_lr_at, set_lr
+from pidg.training.optim import adam, make_gaussian_optimizers, means_lr_at, set_lr
 
 logger = logging.getLogger(__name__)
 
@@ -110,7 +110,7 @@ class Trainer:
             param_groups.append({"params": params, "lr": cfg.deformation_lr * factor, "name": name, "base_lr": cfg.deformation_lr * factor})
         if not param_groups:
             return None
-        return torch.optim.Adam(param_groups, betas=(0.9, 0.999), eps=1e-15)
+        return adam(param_groups, betas=(0.9, 0.999), eps=1e-15)
 
     def _load_flow_cache(self) -> FlowCache:
         """Optical flow of consecutive training frames, computed once and cached next to the dataset (or in the run
