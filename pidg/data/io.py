@@ -205,7 +205,7 @@ def decode_depth(path: Path) -> np.ndarray:
 
 def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
     """Nearest-neighbour resize: averaging depths across an object boundary would invent surfaces."""
-    return np.asarray(Image.fromarray(depth).resize((width, height), Image.Resampling.NEAREST))
+    return np.array(Image.fromarray(depth).resize((width, height), Image.Resampling.NEAREST))  # a writable copy
 
 
 def resize_rgb(rgb: np.ndarray, width: int, height: int) -> np.ndarray:

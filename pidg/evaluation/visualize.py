@@ -24,7 +24,7 @@ class FieldImages:
     """[H, W, 3] float images in [0, 1] of one view at one time, and the scalars their colour scales used."""
 
     velocity: Tensor  # projected velocity (pixels per unit of dt) on the flow colour wheel
-    quiver: Tensor  # the same as arrows over the rendered image
+    quiver: Tensor  # the same as arrows over the rendered image, the largest scaled to 0.9x the arrow spacing
     stress: Tensor  # Frobenius norm of sigma, colour ramp
     max_velocity_px: float
     max_stress: float
@@ -58,7 +58,11 @@ def material_field_images(
     vmax = max_velocity_px if max_velocity_px is not None else float(flow[valid].norm(dim=-1).max()) if valid.any() else 1.0
     smax = max_stress if max_stress is not None else float(stress_img[valid].max()) if valid.any() else 1.0
     rgb = out.rgb.clamp(0, 1)
-    quiver = flow_quiver(flow, rgb, step=max(8, frame.width // 24), scale=1.0, valid=valid, max_magnitude=vmax)
+    step = max(8, frame.width // 24)
+    # arrows drawn so that the largest velocity spans 90 % of the arrow spacing (sub-pixel motion stays visible)
+    quiver = flow_quiver(
+        flow, rgb, step=step, scale=0.9 * step / max(vmax, 1e-6), valid=valid, max_magnitude=vmax, min_magnitude=0.05 * vmax
+    )
     return FieldImages(
         velocity=flow_rgb_tensor(flow, max(vmax, 1e-6), valid),
         quiver=torch.from_numpy(quiver.copy()).float() / 255.0,
