@@ -221,24 +221,22 @@ def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.asarray(Image.fromarray(mask.astype(np.uint8) * 255).resize((width, height), _MASK_FILTER)) > 0
 
 
+def _aligned_map(path: Path | None, decode: Callable[[Path], np.ndarray], what: str, width: int, height: int) -> np.ndarray | None:
+    """A per-pixel map belonging to an image (mask, depth), checked to have the image's size; None without a file."""
+    if path is None:
+        return None
+    values = decode(path)
+    if values.shape != (height, width):
+        raise DatasetError(path, f"{what} is {values.shape[1]}x{values.shape[0]} but its image is {width}x{height}")
+    return values
+
+
 def _load_one(spec: FrameSpec, config: DataConfig) -> tuple[Frame, tuple[int, int]]:
     rgb = decode_rgb(spec.image_path, config.background_rgb)
     height, width = rgb.shape[:2]
     camera = spec.make_camera(width, height)
-    mask = None
-    if spec.mask_path is not None:
-        mask = decode_mask(spec.mask_path)
-        if mask.shape != (height, width):
-            raise DatasetError(
-                spec.mask_path, f"mask is {mask.shape[1]}x{mask.shape[0]} but its image is {width}x{height}"
-            )
-    depth = None
-    if spec.depth_path is not None:
-        depth = decode_depth(spec.depth_path)
-        if depth.shape != (height, width):
-            raise DatasetError(
-                spec.depth_path, f"depth map is {depth.shape[1]}x{depth.shape[0]} but its image is {width}x{height}"
-            )
+    mask = _aligned_map(spec.mask_path, decode_mask, "mask", width, height)
+    depth = _aligned_map(spec.depth_path, decode_depth, "depth map", width, height)
     tw, th = config.target_size(width, height)
     if (tw, th) != (width, height):
         rgb = resize_rgb(rgb, tw, th)
