@@ -91,9 +91,10 @@ def render_run(run_dir: Path, split: str = "test", fps: int = 24, n_time_steps: 
 def _render_material_field(trainer: Trainer, fixed: Frame, out_dir: Path, fps: int, n_time_steps: int) -> list[Path]:
     """Projected velocity (colour wheel and arrows) and stress magnitude over time in a fixed view; colour scales
     are fixed over the video (set from the middle time) and written to field_scales.json."""
-    dt = 1.0 / max(len(trainer.scene.train) - 1, 1)  # one training frame interval, the unit of the flow loss
+    # one training-frame interval of dataset time, in the field's physics time units
+    dt = trainer.physics_time_scale / max(len(trainer.scene.train) - 1, 1)
     ref = material_field_images(trainer, Frame(fixed.camera, 0.5, fixed.image_u8), dt)
-    scales = {"max_velocity_px_per_frame": ref.max_velocity_px, "max_stress": ref.max_stress, "dt": dt}
+    scales = {"max_velocity_px_per_frame": ref.max_velocity_px, "max_stress": ref.max_stress, "dt_physics_units": dt}
     velocity, quiver, stress = [], [], []
     for i in range(n_time_steps):
         t = i / max(n_time_steps - 1, 1)

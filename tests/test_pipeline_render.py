@@ -38,6 +38,6 @@ def test_render_writes_velocity_stress_flows_and_split(full_run):
     out = full_run / "render_test"
     assert len(list((out / "flows_motion_gaussian_velocity").glob("*.png"))) == 5  # 6 training frames -> 5 pairs
     scales = json.loads((out / "field_scales.json").read_text())
-    assert scales["dt"] == pytest.approx(0.2)
+    assert scales["dt_physics_units"] == pytest.approx(1.0)  # default time_scale: one unit per training frame
     errors = json.loads((out / "flow_errors.json").read_text())
     assert len(errors) == 5 and all(e["gaussian_flow_epe"] >= 0 for e in errors)

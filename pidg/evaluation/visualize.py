@@ -41,7 +41,8 @@ def material_field_images(
 ) -> FieldImages:
     """Velocity and stress of the material field at the Gaussians' positions at ``frame.time``, seen from its camera.
 
-    The projected velocity of a Gaussian is proj(x + v dt) - proj(x) in pixels; pass the same ``max_*`` for every
+    The projected velocity of a Gaussian is proj(x + v dt) - proj(x) in pixels (``dt`` in the field's physics time
+    units, see ``PhysicsConfig.time_scale``); pass the same ``max_*`` for every
     frame of a video so colours mean the same thing over time.
     """
     if trainer.material_field is None:

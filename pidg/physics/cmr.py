@@ -17,7 +17,7 @@ step (``pidg.physics.bench``): ~40 MiB at M = 1024 for both N = 20k and 200k; at
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import torch
@@ -83,9 +83,16 @@ def sample_rows(n: int, m: int, generator: torch.Generator | None = None) -> Ten
     return torch.randperm(n, generator=generator)[:m]
 
 
-def _block_terms(field: JetField, x: Tensor, times: Tensor, index: Tensor, density: float, stress: bool) -> tuple[Tensor, Tensor]:
-    """Sum over the block of |r|^2 and the detached sums of the diagnostic norms (STAT_NAMES order)."""
+def _block_terms(
+    field: JetField, x: Tensor, times: Tensor, index: Tensor, density: float, stress: bool, time_scale: float = 1.0
+) -> tuple[Tensor, Tensor]:
+    """Sum over the block of |r|^2 and the detached sums of the diagnostic norms (STAT_NAMES order).
+
+    ``time_scale``: physics time units per unit of the field's time input, so dv/d(tau) = dv/dt / time_scale.
+    """
     jet = field.jet(x, times, index)
+    if time_scale != 1.0:
+        jet = replace(jet, dv_dt=jet.dv_dt / time_scale)
     inertia = density * material_acceleration(jet)
     divergence = stress_divergence(jet.dsigma_dx) if stress else torch.zeros_like(inertia)
     residual = inertia - divergence
@@ -101,12 +108,14 @@ def cmr_loss(
     index: Tensor,
     config: PhysicsConfig,
     generator: torch.Generator | None = None,
+    time_scale: float | None = None,
 ) -> CMRResult:
     """L_CMR = mean over M sampled particles of |r|^2 at their deformed positions and time.
 
     positions [N, 3]: the Gaussians' positions at time t (the deformation's output; gradients flow into it unless
     ``config.detach_positions``). t: float or [N] in [0, 1]. index [N]: ``GaussianModel.particle_index``.
     generator: the trainer's CPU generator for the subset (saved in checkpoints for reproducibility).
+    time_scale: physics time units per unit of t (dv/d tau = dv/dt / time_scale); see ``PhysicsConfig.time_scale``.
     """
     if positions.dim() != 2 or positions.shape[1] != 3:
         raise ValueError(f"cmr_loss: positions must be [N, 3], got {list(positions.shape)}")
@@ -119,6 +128,10 @@ def cmr_loss(
         bad = torch.nonzero(~torch.isfinite(positions.detach()).all(dim=1)).squeeze(1)
         raise ValueError(f"cmr_loss: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
     times = times_column(t, n, positions)
+    # the trainer passes the resolved scale; without one, config.time_scale, and 0 ("per frame": unknown here) = 1
+    time_scale = time_scale if time_scale is not None else (config.time_scale or 1.0)
+    if time_scale <= 0:
+        raise ValueError(f"cmr_loss: time_scale must be > 0, got {time_scale}")
     x = positions.detach() if config.detach_positions else positions
     rows = sample_rows(n, config.samples, generator)
     if rows is not None:
@@ -129,7 +142,7 @@ def cmr_loss(
     total_stats = x.new_zeros(len(STAT_NAMES))
     for start in range(0, m, config.block_size):
         block = slice(start, start + config.block_size)
-        args = (field, x[block], times[block], index[block], config.density, config.stress)
+        args = (field, x[block], times[block], index[block], config.density, config.stress, time_scale)
         if config.checkpoint_blocks and torch.is_grad_enabled():
             sq, stats = checkpoint(_block_terms, *args, use_reentrant=False)
         else:

@@ -41,6 +41,14 @@ class PhysicsConfig:
     detach_positions: bool = field(
         default=False, metadata=_help("True: CMR gradients do not flow into the deformed positions")
     )
+    # The unit of time of v and of the residual. The dataset's t in [0, 1] spans the whole video, so velocities in
+    # scene units per unit t are ~N_frames times those per frame and the residual's terms (dv/dt, (v.grad)v) are
+    # ~N^2 larger: measured on the demo scene (CMR + LPFM, 400 steps), that residual dominated the flow loss and kept
+    # v at 0 (velocity-flow EPE 1.43 px = the target's size); per frame, v follows the flow (EPE 0.48 px).
+    # time_scale = physics time units per unit of t; 0 = one unit per training-frame interval.
+    time_scale: float = field(
+        default=0.0, metadata=_help("physics time units per unit of dataset time (0: one per training-frame interval)")
+    )
     # -- material field sizes -------------------------------------------------------------------------------
     # Coarse planes: a bilinear lookup's derivative is piecewise constant per cell, so fine planes make the
     # velocity gradient noisy; the index embedding carries per-particle detail instead.
@@ -77,6 +85,8 @@ class PhysicsConfig:
             raise ValueError(
                 f"PhysicsConfig: plane resolutions must be >= 2, got {self.spatial_resolution}, {self.time_resolution}"
             )
+        if self.time_scale < 0:
+            raise ValueError(f"PhysicsConfig: time_scale must be >= 0 (0 = per training frame), got {self.time_scale}")
         if self.time_frequencies < 0 or self.start < 0:
             raise ValueError("PhysicsConfig: time_frequencies and start must be >= 0")
         if self.density <= 0 or self.lambda_cmr < 0:

@@ -85,6 +85,7 @@ class Trainer:
             self.material_field = build_material_field(config.physics, bounds, self.model.num_particles)
             self.material_optimizers = self.material_field.make_optimizers()
         self.physics_generator = torch.Generator().manual_seed(config.optim.seed + 1)
+        self.physics_time_scale = self._physics_time_scale()
         self.flow_cache: FlowCache | None = self._load_flow_cache() if config.flow.enabled else None
         self._flow_targets: dict[str, tuple[int, FlowTarget]] = {}  # frame name -> (step built, flow_gt)
         self.strategy = DensificationStrategy(self.model, self.gaussian_optimizers, self.extent, config.densify)
@@ -111,6 +112,15 @@ class Trainer:
         if not param_groups:
             return None
         return adam(param_groups, betas=(0.9, 0.999), eps=1e-15)
+
+    def _physics_time_scale(self) -> float:
+        """Physics time units per unit of dataset time: the config's, or (0) one per training-frame interval."""
+        if self.config.physics.time_scale > 0:
+            return float(self.config.physics.time_scale)
+        times = torch.tensor(sorted({f.time for f in self.scene.train}), dtype=torch.float64)
+        gaps = times.diff()
+        gaps = gaps[gaps > 0]
+        return 1.0 / float(gaps.median()) if len(gaps) else 1.0
 
     def _load_flow_cache(self) -> FlowCache:
         """Optical flow of consecutive training frames, computed once and cached next to the dataset (or in the run
@@ -173,9 +183,10 @@ class Trainer:
         """Gaussian-flow and velocity-flow channels [N, 8] for the render of ``frame`` (both times in its camera)."""
         means, quats, log_scales = state_t
         means1, quats1, log_scales1 = state_t1
-        v = self.velocities(means, frame.time)
+        v = self.velocities(means, frame.time)  # per physics time unit: x + v * dt * time_scale at t+1
         return gaussian_flow_features(
-            frame.camera, means, quats, log_scales.exp(), self.model.opacities, means1, quats1, log_scales1.exp(), v, dt
+            frame.camera, means, quats, log_scales.exp(), self.model.opacities, means1, quats1, log_scales1.exp(), v,
+            dt * self.physics_time_scale,
         )
 
     def flow_target(self, pair: FlowPair, state_t1: tuple[Tensor, Tensor, Tensor], max_age: int = 1) -> FlowTarget:
@@ -227,7 +238,10 @@ class Trainer:
                     parts["deform_reg"] = float(reg.detach())
         if cfg.physics.active(self.step) and self.material_field is not None:
             with timer.phase("physics"):
-                cmr = cmr_loss(self.material_field, means, frame.time, self.model.particle_index, cfg.physics, self.physics_generator)
+                cmr = cmr_loss(
+                    self.material_field, means, frame.time, self.model.particle_index, cfg.physics, self.physics_generator,
+                    time_scale=self.physics_time_scale,
+                )
                 loss = loss + cfg.physics.lambda_cmr * cmr.loss
                 parts["cmr"] = float(cmr.loss.detach())
                 parts.update({f"cmr_{k}": float(v) for k, v in cmr.stats.items()})

@@ -129,6 +129,20 @@ def test_blocks_give_the_full_loss_when_all_particles_fit(tiny_field, tiny_confi
     torch.testing.assert_close(result.stats["residual"], r.norm(dim=1).mean())
 
 
+def test_time_scale_divides_the_time_derivative(tiny_field, tiny_config, random_inputs):
+    """tau = S t: dv/d tau = (dv/dt) / S, everything else unchanged."""
+    from dataclasses import replace
+
+    field = tiny_field()
+    x, t, index = random_inputs(20)
+    config = tiny_config(samples=100, block_size=100)
+    jet = field.jet(x, t, index)
+    expected = momentum_residual(replace(jet, dv_dt=jet.dv_dt / 4.0)).square().sum(dim=1).mean()
+    result = cmr_loss(field, x, t, index, config, torch.Generator().manual_seed(0), time_scale=4.0)
+    torch.testing.assert_close(result.loss, expected, atol=1e-13, rtol=1e-12)
+    assert not torch.allclose(result.loss, _full_loss(field, x, t, index))
+
+
 def test_subset_is_seeded_and_independent_of_the_block_size(tiny_field, tiny_config, random_inputs):
     field = tiny_field()
     x, t, index = random_inputs(200)

@@ -112,3 +112,12 @@ def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):
         pair.frame1.depth = None
     expected = flow_target_for_pair(pair, depth, trainer.config.flow)
     assert torch.equal(target.flow, expected.flow) and torch.equal(target.valid, expected.valid)
+
+
+def test_physics_time_unit_is_one_training_frame_by_default(scene, tmp_path):
+    trainer = Trainer(physics_flow_config(tmp_path, iterations=1), scene)
+    times = sorted(f.time for f in scene.train)
+    assert trainer.physics_time_scale == pytest.approx(1.0 / (times[1] - times[0]))
+    cfg = physics_flow_config(tmp_path / "b", iterations=1)
+    cfg.physics = dataclasses.replace(cfg.physics, time_scale=1.0)
+    assert Trainer(cfg, scene).physics_time_scale == 1.0
