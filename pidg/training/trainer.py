@@ -59,6 +59,15 @@ class StepTimer:
         return {k: 1e3 * v / max(self.steps, 1) for k, v in self.totals.items()}
 
 
+@dataclass
+class _CachedTarget:
+    """A pair's flow_gt, the step it was built at, and frame t+1's rendered depth (None: the dataset's depth map)."""
+
+    step: int
+    depth: Tensor | None
+    target: FlowTarget | None
+
+
 class Trainer:
     """Trains one scene. ``Trainer(config, scene).train()``; ``Trainer.resume(checkpoint)`` continues a run."""
 
@@ -87,7 +96,7 @@ class Trainer:
         self.physics_generator = torch.Generator().manual_seed(config.optim.seed + 1)
         self.physics_time_scale = self._physics_time_scale()
         self.flow_cache: FlowCache | None = self._load_flow_cache() if config.flow.enabled else None
-        self._flow_targets: dict[str, tuple[int, FlowTarget]] = {}  # frame name -> (step built, flow_gt)
+        self._flow_targets: dict[str, _CachedTarget] = {}  # pair's first frame name -> flow_gt and what it came from
         self.strategy = DensificationStrategy(self.model, self.gaussian_optimizers, self.extent, config.densify)
         self.frame_generator = torch.Generator().manual_seed(config.optim.seed)
         self._order: list[int] = []
@@ -113,14 +122,18 @@ class Trainer:
             return None
         return adam(param_groups, betas=(0.9, 0.999), eps=1e-15)
 
+    def training_frame_interval(self) -> float:
+        """Median time gap between consecutive distinct training times (1 with fewer than two)."""
+        times = torch.tensor(sorted({f.time for f in self.scene.train}), dtype=torch.float64)
+        gaps = times.diff()
+        gaps = gaps[gaps > 0]
+        return float(gaps.median()) if len(gaps) else 1.0
+
     def _physics_time_scale(self) -> float:
         """Physics time units per unit of dataset time: the config's, or (0) one per training-frame interval."""
         if self.config.physics.time_scale > 0:
             return float(self.config.physics.time_scale)
-        times = torch.tensor(sorted({f.time for f in self.scene.train}), dtype=torch.float64)
-        gaps = times.diff()
-        gaps = gaps[gaps > 0]
-        return 1.0 / float(gaps.median()) if len(gaps) else 1.0
+        return 1.0 / self.training_frame_interval()
 
     def _load_flow_cache(self) -> FlowCache:
         """Optical flow of consecutive training frames, computed once and cached next to the dataset (or in the run
@@ -180,10 +193,12 @@ class Trainer:
         return v
 
     def _flow_features(self, frame: Frame, state_t: tuple[Tensor, Tensor, Tensor], state_t1: tuple[Tensor, Tensor, Tensor], dt: float) -> Tensor:
-        """Gaussian-flow and velocity-flow channels [N, 8] for the render of ``frame`` (both times in its camera)."""
+        """Gaussian-flow and velocity-flow channels [N, 8] ([N, 6] without a material field) for the render of
+        ``frame`` (both times in its camera)."""
         means, quats, log_scales = state_t
         means1, quats1, log_scales1 = state_t1
-        v = self.velocities(means, frame.time)  # per physics time unit: x + v * dt * time_scale at t+1
+        # per physics time unit: x + v * dt * time_scale at t+1; without a material field, Gaussian flow only
+        v = self.velocities(means, frame.time) if self.material_field is not None else None
         return gaussian_flow_features(
             frame.camera, means, quats, log_scales.exp(), self.model.opacities, means1, quats1, log_scales1.exp(), v,
             dt * self.physics_time_scale,
@@ -191,19 +206,21 @@ class Trainer:
 
     def flow_target(self, pair: FlowPair, state_t1: tuple[Tensor, Tensor, Tensor], max_age: int = 1) -> FlowTarget:
         """flow_gt of a pair: the decomposition needs frame t+1's depth: the dataset's depth map when it has one,
-        otherwise the model's own (a no-grad render at t+1 in camera t+1, detached). Reused while younger than
-        ``max_age`` steps (``flow.target_refresh_steps`` during training)."""
+        otherwise the model's own (a no-grad render at t+1 in camera t+1, detached). That rendered depth is reused
+        while younger than ``max_age`` steps (``flow.target_refresh_steps`` during training) and goes into
+        checkpoints, so a resumed run builds the same targets as an uninterrupted one."""
         key = pair.frame0.name
         cached = self._flow_targets.get(key)
-        if cached is not None and self.step - cached[0] < max_age:
-            return cached[1]
-        if pair.frame1.depth is not None:  # the dataset's own depth map
-            depth1 = pair.frame1.depth
-        else:
+        if cached is not None and self.step - cached.step < max_age:
+            if cached.target is None:  # restored from a checkpoint: rebuild from the saved depth
+                cached.target = flow_target_for_pair(pair, cached.depth if cached.depth is not None else pair.frame1.depth, self.config.flow)
+            return cached.target
+        depth = None
+        if pair.frame1.depth is None:
             with torch.no_grad():
-                depth1 = depth_from_render(self._rasterize(*(x.detach() for x in state_t1), pair.frame1))
-        target = flow_target_for_pair(pair, depth1, self.config.flow)
-        self._flow_targets[key] = (self.step, target)
+                depth = depth_from_render(self._rasterize(*(x.detach() for x in state_t1), pair.frame1))
+        target = flow_target_for_pair(pair, depth if depth is not None else pair.frame1.depth, self.config.flow)
+        self._flow_targets[key] = _CachedTarget(self.step, depth, target)
         return target
 
     def _lpfm(self, pair: FlowPair, state_t1: tuple[Tensor, Tensor, Tensor], out: RenderOutput, max_age: int = 1) -> LPFMResult:
@@ -274,14 +291,13 @@ class Trainer:
         for opt in self.gaussian_optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        decay = 0.1 ** (self.step / max(cfg.optim.deformation_lr_decay_every, 1))  # networks and fields alike
         if self.deformation_optimizer is not None and self.deformation_active():
-            decay = 0.1 ** (self.step / max(cfg.optim.deformation_lr_decay_every, 1))
             for group in self.deformation_optimizer.param_groups:
                 group["lr"] = group["base_lr"] * decay
             self.deformation_optimizer.step()
         if self.deformation_optimizer is not None:
             self.deformation_optimizer.zero_grad(set_to_none=True)
-        decay = 0.1 ** (self.step / max(cfg.optim.deformation_lr_decay_every, 1))  # same schedule as the deformation
         for opt in self.material_optimizers.values():
             for group in opt.param_groups:
                 group["lr"] = group["base_lr"] * decay
@@ -299,14 +315,7 @@ class Trainer:
         for k in range(len(cache)):
             pair = cache.pair(k)
             state_t, state_t1 = self.gaussians_at(pair.frame0.time), self.gaussians_at(pair.frame1.time)
-            if self.material_field is not None:
-                features = self._flow_features(pair.frame0, state_t, state_t1, pair.dt)
-            else:
-                means, quats, log_scales = state_t
-                means1, quats1, log_scales1 = state_t1
-                features = gaussian_flow_features(
-                    pair.frame0.camera, means, quats, log_scales.exp(), self.model.opacities, means1, quats1, log_scales1.exp()
-                )
+            features = self._flow_features(pair.frame0, state_t, state_t1, pair.dt)
             out = self._rasterize(*state_t, pair.frame0, features=features)
             result = self._lpfm(pair, state_t1, out)
             n = result.valid_pixels
@@ -425,6 +434,8 @@ class Trainer:
             "material_field": None if self.material_field is None else self.material_field.state_dict(),
             "material_optimizers": {k: v.state_dict() for k, v in self.material_optimizers.items()},
             "physics_generator": self.physics_generator.get_state(),
+            # the rendered depths behind cached flow targets (the targets are rebuilt from them on resume)
+            "flow_depths": {k: (c.step, c.depth) for k, c in self._flow_targets.items()},
             "strategy": self.strategy.state_dict(),
             "random": random_states(),
             "frame_generator": self.frame_generator.get_state(),
@@ -451,6 +462,7 @@ class Trainer:
                 opt.load_state_dict(state["material_optimizers"][name])
         if "physics_generator" in state:
             self.physics_generator.set_state(state["physics_generator"])
+        self._flow_targets = {k: _CachedTarget(step, depth, None) for k, (step, depth) in state.get("flow_depths", {}).items()}
         self.strategy.load_state_dict(state["strategy"])
         restore_random_states(state["random"])
         self.frame_generator.set_state(state["frame_generator"])
@@ -472,12 +484,16 @@ class Trainer:
             raise RuntimeError(f"{path}: not a pidg training checkpoint")
         config = config or from_jsonable(TrainConfig, state["config"])
         trainer = cls(config, scene)
-        # densification changed the number of Gaussians: size the model (and its optimizers) like the checkpoint
-        trainer.model.load_state_dict(state["model"])
-        trainer.gaussian_optimizers = make_gaussian_optimizers(trainer.model, config.gaussian_optim, trainer.extent)
-        trainer.strategy = DensificationStrategy(trainer.model, trainer.gaussian_optimizers, trainer.extent, config.densify)
+        trainer.load_gaussians(state["model"])
         trainer.load_state_dict(state)
         return trainer
+
+    def load_gaussians(self, model_state: dict) -> None:
+        """Take another model's Gaussians (densification changes their number): resize the model, and rebuild its
+        optimizers (fresh moments) and the densification strategy to match."""
+        self.model.load_state_dict(model_state)
+        self.gaussian_optimizers = make_gaussian_optimizers(self.model, self.config.gaussian_optim, self.extent)
+        self.strategy = DensificationStrategy(self.model, self.gaussian_optimizers, self.extent, self.config.densify)
 
 
 def _tensorboard(log_dir: Path):
