@@ -101,7 +101,7 @@ def _cmd_bench_quality(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_preset_argument(parser: argparse.ArgumentParser) -> None:
+def _add_run_options(parser: argparse.ArgumentParser) -> None:
     """--preset, plus the paper's ablation switches as short forms of --physics.kind / --flow.kind."""
     from pidg.config_tools import MISSING_OPTION
 
@@ -136,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", help="train on a dataset folder (D-NeRF, PIDG/BlenderNeRF, HyperNeRF)")
     train.add_argument("--config", help="a config.json to start from (e.g. one written by an earlier run)")
     train.add_argument("--resume", action="store_true", help="continue from OUTPUT.DIR/checkpoint.pt")
-    _add_preset_argument(train)
+    _add_run_options(train)
     add_config_arguments(train, TrainConfig)
     train.set_defaults(func=_cmd_train)
 
@@ -182,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     quality.add_argument("--minutes", type=float, default=30.0, help="training time budget per run (0: none, --optim.iterations only)")
     quality.add_argument("--variants", nargs="*", default=None, help="ablation rows per scene: base cmr full nostress lpfm (default: the config as given)")
     quality.add_argument("--config", help="a config.json to start from")
-    _add_preset_argument(quality)
+    _add_run_options(quality)
     add_config_arguments(quality, TrainConfig)
     quality.set_defaults(func=_cmd_bench_quality)
     step = bench_sub.add_parser("step", help="training-step rate and its breakdown per variant, interleaved, fixed Gaussian count")
@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     step.add_argument("--out", default="outputs/bench/step.json")
     step.add_argument("--from-run", default=None, help="start from this run's trained Gaussians (its checkpoint) instead of a random init")
     step.add_argument("--config", help="a config.json to start from")
-    _add_preset_argument(step)
+    _add_run_options(step)
     add_config_arguments(step, TrainConfig)
     step.set_defaults(func=_cmd_bench_step)
     # parsed by pidg.physics.bench itself (see main): listed here for `pidg bench -h`

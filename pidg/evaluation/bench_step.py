@@ -85,16 +85,12 @@ def run_step_bench(
 def _load_trained_gaussians(trainer, checkpoint: Path) -> None:
     """Replace a fresh trainer's Gaussians and deformation by a checkpoint's (optimiser state starts fresh)."""
     from pidg.training.checkpoint import load_checkpoint
-    from pidg.training.densification import DensificationStrategy
-    from pidg.training.optim import make_gaussian_optimizers
 
     state = load_checkpoint(checkpoint)
-    trainer.model.load_state_dict(state["model"])
+    trainer.load_gaussians(state["model"])
     trainer.deformation.load_state_dict(state["deformation"])
     trainer.decoupled = bool(state.get("decoupled", False))
     trainer.step = int(state["step"])
-    trainer.gaussian_optimizers = make_gaussian_optimizers(trainer.model, trainer.config.gaussian_optim, trainer.extent)
-    trainer.strategy = DensificationStrategy(trainer.model, trainer.gaussian_optimizers, trainer.extent, trainer.config.densify)
 
 
 def format_step_table(results: dict[str, dict], title: str) -> str:

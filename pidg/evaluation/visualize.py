@@ -14,7 +14,7 @@ from torch import Tensor
 from pidg.data.scene import Frame
 from pidg.evaluation.flow_vis import flow_quiver, flow_rgb_tensor
 from pidg.evaluation.images import colorize_scalar
-from pidg.flow import FlowPair, decode_flows
+from pidg.flow import FlowPair, decode_flows, lpfm_loss
 
 MIN_ALPHA = 0.5  # pixels less opaque than this show no field value (they mix surface and background)
 
@@ -83,7 +83,7 @@ def flow_comparison(trainer, pair: FlowPair, max_magnitude: float | None = None)
     out = trainer._rasterize(*state_t, pair.frame0, features=features)
     flow_g, flow_v, drawn = decode_flows(out.features, out.alpha)
     target = trainer.flow_target(pair, state_t1)
-    result = trainer._lpfm(pair, state_t1, out)
+    result = lpfm_loss(flow_g, flow_v, target, out.alpha, trainer.config.flow)
     scale = max_magnitude if max_magnitude is not None else float(target.flow[target.valid].norm(dim=-1).max()) if target.valid.any() else 1.0
     scale = max(scale, 1e-6)
     panels = [
