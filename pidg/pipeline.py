@@ -135,8 +135,7 @@ def demo_config(data_dir: Path, run_dir: Path, iterations: int, minutes: float |
     cfg = apply_preset(TrainConfig(data=DataConfig(path=data_dir, progress=False)), "cpu")
     densify_stop = max(int(0.6 * iterations), 1)
     cfg.densify = dataclasses.replace(cfg.densify, start=200, stop=densify_stop, every=100, opacity_reset_every=max(densify_stop // 2, 500))
-    cfg.gaussian_optim = dataclasses.replace(cfg.gaussian_optim, means_lr_decay_steps=iterations)
-    cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations, time_budget_minutes=minutes, deformation_lr_decay_every=iterations)
+    cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations, time_budget_minutes=minutes)  # schedules follow it
     cfg.output = dataclasses.replace(cfg.output, dir=run_dir, checkpoint_every=500, preview_every=500)
     return cfg
 

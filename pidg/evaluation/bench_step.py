@@ -58,7 +58,7 @@ def run_step_bench(
         )
         trainer = Trainer(config, scene)
         if from_run is not None:
-            _load_trained_gaussians(trainer, Path(from_run) / "checkpoint.pt")
+            _load_trained_gaussians(trainer, Path(from_run) / "checkpoint.pt", log)
         trainer.train(warmup)
         trainer.timer.totals.clear()
         trainer.timer.steps = 0
@@ -82,13 +82,22 @@ def run_step_bench(
     return results
 
 
-def _load_trained_gaussians(trainer, checkpoint: Path) -> None:
-    """Replace a fresh trainer's Gaussians and deformation by a checkpoint's (optimiser state starts fresh)."""
+def _load_trained_gaussians(trainer, checkpoint: Path, log: Callable[[str], None] = print) -> None:
+    """Replace a fresh trainer's Gaussians and deformation by a checkpoint's (optimiser state starts fresh).
+
+    A deformation of another shape (a run trained with other grid or layer sizes) is left freshly initialised:
+    a step's cost depends on the sizes and on the Gaussians, not on the trained weights.
+    """
     from pidg.training.checkpoint import load_checkpoint
 
     state = load_checkpoint(checkpoint)
     trainer.load_gaussians(state["model"])
-    trainer.deformation.load_state_dict(state["deformation"])
+    current = trainer.deformation.state_dict()
+    saved = state["deformation"]
+    if set(saved) == set(current) and all(saved[k].shape == current[k].shape for k in current):
+        trainer.deformation.load_state_dict(saved)
+    else:
+        log(f"{checkpoint}: its deformation has other sizes than the configured one; timing a fresh deformation")
     trainer.decoupled = bool(state.get("decoupled", False))
     trainer.step = int(state["step"])
 

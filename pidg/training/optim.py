@@ -19,7 +19,7 @@ class GaussianOptimConfig:
 
     means_lr: float = 1.6e-4
     means_lr_final: float = 1.6e-6
-    means_lr_decay_steps: int = 30_000  # exponential decay from means_lr to means_lr_final over this many steps
+    means_lr_decay_steps: int = 0  # log-linear decay from means_lr to means_lr_final over this many steps; 0: the run's
     quats_lr: float = 1e-3
     log_scales_lr: float = 5e-3
     opacity_lr: float = 5e-2
@@ -33,9 +33,11 @@ class GaussianOptimConfig:
             self.betas = (float(self.betas[0]), float(self.betas[1]))
 
 
-def means_lr_at(step: int, config: GaussianOptimConfig, scene_extent: float) -> float:
-    """Log-linear decay of the position learning rate (3DGS ``expon_lr_func`` without the warm-up delay)."""
-    t = min(max(step, 0) / max(1, config.means_lr_decay_steps), 1.0)
+def means_lr_at(step: int, config: GaussianOptimConfig, scene_extent: float, iterations: int) -> float:
+    """Log-linear decay of the position learning rate (3DGS ``expon_lr_func`` without the warm-up delay), over
+    ``means_lr_decay_steps`` or, when that is 0, over the run's ``iterations`` (as 3DGS, whose schedule ends with
+    its run: a 2400-step run on a 30k-step schedule would end at 69% of the initial rate instead of 1%)."""
+    t = min(max(step, 0) / max(1, config.means_lr_decay_steps or iterations), 1.0)
     lr = math.exp((1.0 - t) * math.log(config.means_lr) + t * math.log(config.means_lr_final))
     return lr * scene_extent
 
@@ -49,7 +51,7 @@ def make_gaussian_optimizers(
     """
     config = config or GaussianOptimConfig()
     lrs = {
-        "means": means_lr_at(0, config, scene_extent),
+        "means": config.means_lr * scene_extent,  # the schedule's start (the trainer sets it every step)
         "quats": config.quats_lr,
         "log_scales": config.log_scales_lr,
         "opacity_logits": config.opacity_lr,

@@ -20,6 +20,7 @@ from typing import Iterator
 import torch
 from torch import Tensor
 
+from pidg._env import retain_freed_memory
 from pidg.config_tools import save_config, to_jsonable
 from pidg.data.scene import Frame, SceneData
 from pidg.evaluation.metrics import psnr
@@ -74,6 +75,7 @@ class Trainer:
     def __init__(self, config: TrainConfig, scene: SceneData) -> None:
         self.config = config
         self.scene = scene
+        retain_freed_memory()  # a step's large temporaries would otherwise be re-faulted from the OS every step
         seed_everything(config.optim.seed)
         self.extent = float(scene.bounds.extent)
         self.model = GaussianModel.from_scene(scene, config.gaussians)
@@ -287,11 +289,11 @@ class Trainer:
 
     def _optimizer_step(self) -> None:
         cfg = self.config
-        set_lr(self.gaussian_optimizers["means"], means_lr_at(self.step, cfg.gaussian_optim, self.extent))
+        set_lr(self.gaussian_optimizers["means"], means_lr_at(self.step, cfg.gaussian_optim, self.extent, cfg.optim.iterations))
         for opt in self.gaussian_optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
-        decay = 0.1 ** (self.step / max(cfg.optim.deformation_lr_decay_every, 1))  # networks and fields alike
+        decay = 0.1 ** (self.step / max(cfg.optim.deformation_lr_decay_every or cfg.optim.iterations, 1))  # networks and fields alike
         if self.deformation_optimizer is not None and self.deformation_active():
             for group in self.deformation_optimizer.param_groups:
                 group["lr"] = group["base_lr"] * decay

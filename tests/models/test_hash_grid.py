@@ -107,6 +107,24 @@ def test_kernel_matches_reference(config):
     assert outside.any() and (gc_k[outside] == 0).all() and (gc_r[outside] == 0).all()
 
 
+def test_kernel_backward_reads_a_column_block_of_a_wider_gradient():
+    """Features concatenated with others get a strided gradient (a column block); the kernel reads it in place."""
+    grid = random_grid(MIXED)
+    pts = hard_points(MIXED, 300)
+    gen = torch.Generator().manual_seed(4)
+    upstream = torch.randn(pts.shape[0], 3 * grid.out_dim, generator=gen)
+    grads = []
+    for backend in ("cpu", "torch"):
+        coords = pts.clone().requires_grad_(True)
+        grid.table.grad = None
+        out = hash_encode(coords, grid.table, grid.layout, backend)
+        (torch.cat([out.detach(), out, out.detach()], dim=-1) * upstream).sum().backward()
+        grads.append((coords.grad, grid.table.grad.clone()))
+    (gc_k, gt_k), (gc_r, gt_r) = grads
+    assert (gt_k - gt_r).abs().max() / gt_r.abs().max() < 1e-4
+    assert (gc_k - gc_r).abs().max() / gc_r.abs().max() < 1e-4
+
+
 def test_outside_points_clamp_onto_the_box():
     grid = random_grid(MIXED)
     inside = torch.tensor([[0.0, 0.5, 1.0], [1.0, 1.0, 0.0]])

@@ -318,10 +318,13 @@ def test_strategy_state_dict_round_trip():
 
 
 def test_means_lr_schedule():
-    cfg = GaussianOptimConfig()
-    assert means_lr_at(0, cfg, 2.0) == pytest.approx(3.2e-4)
-    assert means_lr_at(30_000, cfg, 2.0) == pytest.approx(3.2e-6)
-    assert means_lr_at(15_000, cfg, 1.0) == pytest.approx(1.6e-5)
+    cfg = GaussianOptimConfig(means_lr_decay_steps=30_000)
+    assert means_lr_at(0, cfg, 2.0, iterations=2400) == pytest.approx(3.2e-4)
+    assert means_lr_at(30_000, cfg, 2.0, iterations=2400) == pytest.approx(3.2e-6)
+    assert means_lr_at(15_000, cfg, 1.0, iterations=2400) == pytest.approx(1.6e-5)
+    run_length = GaussianOptimConfig()  # 0: the schedule spans the run
+    assert means_lr_at(1200, run_length, 1.0, iterations=2400) == pytest.approx(1.6e-5)
+    assert means_lr_at(2400, run_length, 1.0, iterations=2400) == pytest.approx(1.6e-6)
 
 
 def test_end_to_end_render_backward_densify_render():

@@ -389,6 +389,13 @@ def _f32(t: Tensor) -> np.ndarray:
     return t.detach().to(torch.float32).contiguous().numpy()
 
 
+def _f32_rows(t: Tensor) -> np.ndarray:
+    """float32 [N, C] with unit column stride, as a view when it already is one: the incoming gradient is usually a
+    column block of the concatenated features' gradient, which the kernels read in place instead of copying."""
+    t = t.detach()
+    return t.numpy() if t.dtype == torch.float32 and t.stride(-1) == 1 else _f32(t)
+
+
 def _unit_soa(coords: Tensor) -> np.ndarray:
     """Clamped coordinates as float32 [3, N], the layout the lane loops read."""
     return _f32(coords.detach().to(torch.float32).clamp(0.0, 1.0).T)
@@ -408,7 +415,7 @@ class _HashEncodeCPU(torch.autograd.Function):
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
         coords, table = ctx.saved_tensors
         layout: GridLayout = ctx.layout
-        u, g = _unit_soa(coords), _f32(grad_out)
+        u, g = _unit_soa(coords), _f32_rows(grad_out)
         consts = (layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size)
         grad_coords = grad_table = None
         if ctx.needs_input_grad[1]:
