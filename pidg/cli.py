@@ -58,7 +58,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 def _cmd_eval(args: argparse.Namespace) -> int:
     from pidg.pipeline import evaluate_run
 
-    result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(args.lpips))
+    result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"))
     mean = result["mean"]
     print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
     return 0
@@ -151,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("eval", help="metrics of a trained run on a split (JSON in RUN/eval_SPLIT)")
     ev.add_argument("run", help="the run's output folder")
     ev.add_argument("--split", default="test")
-    ev.add_argument("--lpips", nargs="*", default=["alex", "vgg"], help="LPIPS backbones (none to skip)")
+    ev.add_argument("--lpips", nargs="*", default=["alex", "vgg"], help="LPIPS backbones: alex, vgg; `none` (or no value) skips LPIPS")
     ev.set_defaults(func=_cmd_eval)
 
     rd = sub.add_parser("render", help="videos and frames of a trained run: fixed view over time, test trajectory, depth")

@@ -41,3 +41,12 @@ def test_render_writes_velocity_stress_flows_and_split(full_run):
     assert scales["dt_physics_units"] == pytest.approx(1.0)  # default time_scale: one unit per training frame
     errors = json.loads((out / "flow_errors.json").read_text())
     assert len(errors) == 5 and all(e["gaussian_flow_epe"] >= 0 for e in errors)
+
+
+@pytest.mark.filterwarnings("ignore:ms_ssim reported as None")  # 32 px images are below MS-SSIM's minimum
+def test_cli_eval_with_lpips_none_writes_metrics_without_lpips(full_run):
+    from pidg.cli import main
+
+    assert main(["eval", str(full_run), "--split", "test", "--lpips", "none"]) == 0
+    metrics = json.loads((full_run / "eval_test" / "metrics.json").read_text())
+    assert metrics["mean"]["psnr"] > 0 and not any("lpips" in k for k in metrics["mean"])

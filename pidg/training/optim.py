@@ -19,7 +19,7 @@ class GaussianOptimConfig:
 
     means_lr: float = 1.6e-4
     means_lr_final: float = 1.6e-6
-    means_lr_decay_steps: int = 0  # log-linear decay from means_lr to means_lr_final over this many steps; 0: the run's
+    means_lr_decay_steps: int = 0  # log-linear decay from means_lr to means_lr_final over this many steps (0: the run)
     quats_lr: float = 1e-3
     log_scales_lr: float = 5e-3
     opacity_lr: float = 5e-2
