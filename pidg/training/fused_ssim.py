@@ -69,29 +69,19 @@ def _store(acc, out, j, c, y):  # pragma: no cover - compiled
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _blur_x(maps, kernel, rows):  # pragma: no cover - compiled
-    """rows = the x pass of the blur of [J, C, H, W] maps (zero outside the image)."""
-    n_maps, n_ch, height, width = maps.shape
+def _blur_pass(src, kernel, dst, along_y):  # pragma: no cover - compiled
+    """dst = one pass of the separable blur of [J, C, H, W] maps, along x or (``along_y``) along y."""
+    n_maps, n_ch, height, width = src.shape
     n_bands = (height + _BAND - 1) // _BAND
     for job in prange(n_maps * n_ch * n_bands):
         j, c, y0 = job // (n_ch * n_bands), (job // n_bands) % n_ch, (job % n_bands) * _BAND
         acc = np.empty(width, dtype=np.float32)
         for y in range(y0, min(height, y0 + _BAND)):
-            _blur_row_x(maps[j, c, y], kernel, acc)
-            _store(acc, rows, j, c, y)
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _blur_y(rows, kernel, out):  # pragma: no cover - compiled
-    """out = the y pass of the blur of x-blurred [J, C, H, W] rows."""
-    n_maps, n_ch, height, width = rows.shape
-    n_bands = (height + _BAND - 1) // _BAND
-    for job in prange(n_maps * n_ch * n_bands):
-        j, c, y0 = job // (n_ch * n_bands), (job // n_bands) % n_ch, (job % n_bands) * _BAND
-        acc = np.empty(width, dtype=np.float32)
-        for y in range(y0, min(height, y0 + _BAND)):
-            _blur_row_y(rows, j, c, y, kernel, acc)
-            _store(acc, out, j, c, y)
+            if along_y:
+                _blur_row_y(src, j, c, y, kernel, acc)
+            else:
+                _blur_row_x(src[j, c, y], kernel, acc)
+            _store(acc, dst, j, c, y)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -160,8 +150,8 @@ def blur(maps: Tensor) -> Tensor:
     """[M, H, W] float32 -> same shape, blurred by the 11-tap sigma-1.5 Gaussian with zero padding."""
     src = _chw(maps)[None]
     rows, out = np.empty_like(src), np.empty_like(src)
-    _blur_x(src, _WINDOW, rows)
-    _blur_y(rows, _WINDOW, out)
+    _blur_pass(src, _WINDOW, rows, False)
+    _blur_pass(rows, _WINDOW, out, True)
     return torch.from_numpy(out[0])
 
 
@@ -181,7 +171,7 @@ class _FusedSSIM(torch.autograd.Function):
     def backward(ctx, grad: Tensor):  # type: ignore[override]
         p, g, derivs = ctx.maps
         blurred_x, out = np.empty_like(derivs), np.empty_like(p)
-        _blur_x(derivs, _WINDOW, blurred_x)
+        _blur_pass(derivs, _WINDOW, blurred_x, False)
         _ssim_gradient(p, g, blurred_x, _WINDOW, np.float32(float(grad) / p.size), out)
         return torch.from_numpy(out).to(ctx.dtype), None
 
@@ -200,4 +190,4 @@ def fused_ssim(pred: Tensor, gt: Tensor) -> Tensor:
         raise ValueError("fused_ssim: CPU tensors only (use metrics.ssim on other devices)")
     # [H, W, C] -> [C, H, W] maps (the kernels copy them to contiguous float32)
     chw_pred, chw_gt = pred.permute(2, 0, 1), gt.permute(2, 0, 1)
-    return _FusedSSIM.apply(chw_pred, chw_gt).to(pred.dtype)
+    return _FusedSSIM.apply(chw_pred, chw_gt)

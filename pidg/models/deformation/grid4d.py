@@ -34,6 +34,7 @@ full-size gradient).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -222,23 +223,12 @@ class Grid4D(DeformationModel):
         if not (spatial_w or temporal_w):
             return self.encode_spatial(u_xyz), self.encode_temporal(u_xyz, u_t), None
         rows = torch.randperm(n, device=u_xyz.device)[:m]
-        sample_xyz, sample_t = u_xyz[rows].detach(), u_t[rows].detach()
-        loss = u_xyz.new_zeros(())
-        if spatial_w:
-            jittered = sample_xyz + _uniform_like(sample_xyz, cfg.reg_spatial_perturb)
-            spatial, base, moved = self.encode_spatial(torch.cat([u_xyz, sample_xyz, jittered])).split([n, m, m])
-            loss = loss + spatial_w * _mean_squared_change(base, moved)
-        else:
-            spatial = self.encode_spatial(u_xyz)
-        if temporal_w:
-            sample4 = torch.cat([sample_xyz, sample_t[:, None]], dim=-1)
-            jittered4 = sample4 + _uniform_like(sample4, cfg.reg_temporal_perturb)
-            all_xyz = torch.cat([u_xyz, sample_xyz, jittered4[:, :3]])
-            temporal, base, moved = self.encode_temporal(all_xyz, torch.cat([u_t, sample_t, jittered4[:, 3]])).split([n, m, m])
-            loss = loss + temporal_w * _mean_squared_change(base, moved)
-        else:
-            temporal = self.encode_temporal(u_xyz, u_t)
-        return spatial, temporal, loss
+        spatial, spatial_term = _encode_with_smoothness(self.encode_spatial, u_xyz, rows, cfg.reg_spatial_perturb, spatial_w)
+        temporal, temporal_term = _encode_with_smoothness(
+            lambda u4: self.encode_temporal(u4[:, :3], u4[:, 3]), torch.cat([u_xyz, u_t[:, None]], dim=-1), rows,
+            cfg.reg_temporal_perturb, temporal_w,
+        )
+        return spatial, temporal, spatial_term + temporal_term
 
     def regularization_loss(self) -> Tensor:
         """Grid4D's smoothness term for the last training forward pass: weight * mean over the sampled points of
@@ -255,9 +245,19 @@ class Grid4D(DeformationModel):
         return {k: v for k, v in groups.items() if v}
 
 
-def _mean_squared_change(base: Tensor, moved: Tensor) -> Tensor:
-    """Mean over the sampled points of the summed squared feature change, base and moved [M, F]."""
-    return (moved - base).square().sum(dim=-1).mean()
+def _encode_with_smoothness(
+    encode: Callable[[Tensor], Tensor], points: Tensor, rows: Tensor, half_widths: tuple[float, ...], weight: float
+) -> tuple[Tensor, Tensor]:
+    """(encode(points) [N, F], weight * mean over the sampled ``rows`` of the summed squared feature change under
+    uniform noise of ``half_widths``). The sample and its perturbed copy go through the same ``encode`` call as the
+    points, and are separated with ``split`` (see the module docstring); weight 0 skips the sample."""
+    if not weight:
+        return encode(points), points.new_zeros(())
+    sample = points[rows].detach()
+    jittered = sample + _uniform_like(sample, half_widths)
+    m = sample.shape[0]
+    features, base, moved = encode(torch.cat([points, sample, jittered])).split([points.shape[0], m, m])
+    return features, weight * (moved - base).square().sum(dim=-1).mean()
 
 
 def _uniform_like(x: Tensor, half_widths: tuple[float, ...]) -> Tensor:
