@@ -4,15 +4,31 @@ from __future__ import annotations
 from pidg import _env  # noqa: F401  (must precede torch)
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
+from typing import get_args
+
+from pidg.bench.cmr import VARIANTS as CMR_BENCH_VARIANTS
+from pidg.bench.cmr import CMRBenchConfig, run_cmr_bench
+from pidg.bench.quality import run_quality_bench
+from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_bench
+from pidg.bench.step import run_step_bench
+from pidg.checkpoint import CHECKPOINT_FILE
+from pidg.config_tools import MISSING_OPTION, add_config_arguments, apply_overrides, load_config, overrides_from_args
+from pidg.data import load_scene
+from pidg.flow import run_preprocess
+from pidg.flow.config import FlowKind
+from pidg.metrics import NetName
+from pidg.models.material_field import Activation, MaterialFieldConfig
+from pidg.physics import PhysicsConfig, PhysicsKind
+from pidg.pipeline import evaluate_run, render_run, run_demo
+from pidg.training.config import ABLATION_VARIANTS, Preset, TrainConfig, apply_preset
+from pidg.training.trainer import Trainer
 
 
-def _train_config(args: argparse.Namespace):
-    from pidg.config_tools import apply_overrides, load_config, overrides_from_args
-    from pidg.training.config import TrainConfig, apply_preset
-
+def _train_config(args: argparse.Namespace) -> TrainConfig:
     if getattr(args, "config", None):
         base = load_config(TrainConfig, Path(args.config))  # a saved config is already resolved: no preset
     else:
@@ -21,14 +37,11 @@ def _train_config(args: argparse.Namespace):
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from pidg.data import load_scene
-    from pidg.training.trainer import Trainer
-
     config = _train_config(args)
     if not str(config.data.path):
         raise SystemExit("pidg train: give the dataset folder with --data.path DIR")
     scene = load_scene(config.data)
-    checkpoint = Path(config.output.dir) / "checkpoint.pt"
+    checkpoint = Path(config.output.dir) / CHECKPOINT_FILE
     if args.resume:
         if not checkpoint.is_file():
             raise SystemExit(f"pidg train --resume: no checkpoint at {checkpoint}")
@@ -43,10 +56,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
-    import json
-
-    from pidg.flow import run_preprocess
-
     config = _train_config(args)
     if not str(config.data.path):
         raise SystemExit("pidg preprocess: give the dataset folder with --data.path DIR")
@@ -56,8 +65,6 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from pidg.pipeline import evaluate_run
-
     result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"))
     mean = result["mean"]
     print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
@@ -65,24 +72,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from pidg.pipeline import render_run
-
-    paths = render_run(Path(args.run), split=args.split, fps=args.fps)
-    for p in paths:
-        print(f"wrote {p}")
+    for path in render_run(Path(args.run), split=args.split, fps=args.fps):
+        print(f"wrote {path}")
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from pidg.pipeline import run_demo
-
     run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes, physics=args.physics, flow=args.flow)
     return 0
 
 
 def _cmd_bench_render(args: argparse.Namespace) -> int:
-    from pidg.evaluation.bench_render import RenderBenchCase, RenderBenchConfig, run_render_bench
-
     config = RenderBenchConfig(repeats=args.repeats)
     if args.quick:
         config = RenderBenchConfig(
@@ -93,32 +93,12 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_quality(args: argparse.Namespace) -> int:
-    from pidg.evaluation.bench_quality import run_quality_bench
-
-    base = _train_config(args)
     minutes = args.minutes if args.minutes and args.minutes > 0 else None
-    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), base, args.downscale, minutes, args.variants)
+    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), _train_config(args), args.downscale, minutes, args.variants)
     return 0
 
 
-def _add_run_options(parser: argparse.ArgumentParser) -> None:
-    """--preset, plus the paper's ablation switches as short forms of --physics.kind / --flow.kind."""
-    from pidg.config_tools import MISSING_OPTION
-
-    parser.add_argument("--physics", choices=["none", "cmr"], dest="cfg::physics.kind", default=MISSING_OPTION,
-                        help="Cauchy momentum residual on the material field (same as --physics.kind)")
-    parser.add_argument("--flow", choices=["none", "lpfm"], dest="cfg::flow.kind", default=MISSING_OPTION,
-                        help="Lagrangian particle flow matching against preprocessed optical flow (same as --flow.kind)")
-    parser.add_argument(
-        "--preset", choices=["auto", "paper", "cpu"], default="auto",
-        help="model sizes: paper (Grid4D as published), cpu (smaller hash tables and layers), auto = paper with CUDA, "
-        "else cpu; --section.field options override it",
-    )
-
-
 def _cmd_bench_step(args: argparse.Namespace) -> int:
-    from pidg.evaluation.bench_step import run_step_bench
-
     run_step_bench(
         Path(args.scene), _train_config(args), args.variants, args.downscale, args.gaussians, args.iterations,
         out=Path(args.out) if args.out else None, from_run=Path(args.from_run) if args.from_run else None,
@@ -126,91 +106,118 @@ def _cmd_bench_step(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from pidg.config_tools import add_config_arguments
-    from pidg.training.config import TrainConfig
+def _cmd_bench_cmr(args: argparse.Namespace) -> int:
+    config = CMRBenchConfig(
+        tuple(args.samples), tuple(args.particles), tuple(args.variants), args.repeats,
+        physics=PhysicsConfig(kind="cmr", block_size=args.block_size),
+        material=MaterialFieldConfig(width=args.width, activation=args.activation),
+    )
+    run_cmr_bench(config, Path(args.out) if args.out else None)
+    return 0
 
+
+def _add_run_options(parser: argparse.ArgumentParser, positional: str = "") -> None:
+    """--config and --preset, the paper's ablation switches as short forms of --physics.kind / --flow.kind, and one
+    --section.field option per config field (the usage line names them in general: they are listed below it)."""
+    parser.usage = f"%(prog)s {positional}[options] [--SECTION.FIELD VALUE ...]"
+    parser.add_argument("--config", help="a config.json to start from (e.g. one written by an earlier run); it is "
+                        "already resolved, so no preset applies")
+    parser.add_argument("--physics", choices=get_args(PhysicsKind), dest="cfg::physics.kind", default=MISSING_OPTION,
+                        help="cmr: the Cauchy momentum residual on the material field (same as --physics.kind)")
+    parser.add_argument("--flow", choices=get_args(FlowKind), dest="cfg::flow.kind", default=MISSING_OPTION,
+                        help="lpfm: Lagrangian particle flow matching against preprocessed optical flow (same as --flow.kind)")
+    parser.add_argument(
+        "--preset", choices=get_args(Preset), default="auto",
+        help="model sizes: paper (Grid4D as published), cpu (smaller hash tables and layers), auto = paper with CUDA, "
+        "else cpu; --section.field options override it",
+    )
+    add_config_arguments(parser, TrainConfig)
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pidg", description="Physics-Informed Deformable Gaussian Splatting")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    train = sub.add_parser("train", help="train on a dataset folder (D-NeRF, PIDG/BlenderNeRF, HyperNeRF)")
-    train.add_argument("--config", help="a config.json to start from (e.g. one written by an earlier run)")
+    train = sub.add_parser("train", help="train on a dataset folder (D-NeRF, PIDG/BlenderNeRF, HyperNeRF)",
+                           description="Train on a dataset folder. Every config field is an option; the resolved config "
+                           "is saved as RUN/config.json.")
     train.add_argument("--resume", action="store_true", help="continue from OUTPUT.DIR/checkpoint.pt")
     _add_run_options(train)
-    add_config_arguments(train, TrainConfig)
     train.set_defaults(func=_cmd_train)
 
     pre = sub.add_parser(
         "preprocess", help="optical flow of consecutive training frames (forward, backward, consistency), cached on disk"
     )
     pre.add_argument("--cache-root", default=None, help="cache folder (default: DATASET/<flow.cache_dir>)")
-    pre.add_argument("--config", help="a config.json to start from")
-    pre.set_defaults(func=_cmd_preprocess, preset="auto")
-    add_config_arguments(pre, TrainConfig)
+    _add_run_options(pre)
+    pre.set_defaults(func=_cmd_preprocess)
 
     ev = sub.add_parser("eval", help="metrics of a trained run on a split (JSON in RUN/eval_SPLIT)")
     ev.add_argument("run", help="the run's output folder")
-    ev.add_argument("--split", default="test")
-    ev.add_argument("--lpips", nargs="*", default=["alex", "vgg"], help="LPIPS backbones: alex, vgg; `none` (or no value) skips LPIPS")
+    ev.add_argument("--split", default="test", help="train, val or test")
+    ev.add_argument("--lpips", nargs="*", default=["alex", "vgg"], choices=[*get_args(NetName), "none"],
+                    help="LPIPS backbones; `none` (or no value) skips LPIPS")
     ev.set_defaults(func=_cmd_eval)
 
     rd = sub.add_parser("render", help="videos and frames of a trained run: fixed view over time, test trajectory, depth")
     rd.add_argument("run", help="the run's output folder")
-    rd.add_argument("--split", default="test")
-    rd.add_argument("--fps", type=int, default=24)
+    rd.add_argument("--split", default="test", help="train, val or test")
+    rd.add_argument("--fps", type=int, default=24, help="frames per second of the videos over time")
     rd.set_defaults(func=_cmd_render)
 
     demo = sub.add_parser("demo", help="train on the embedded procedural scene and write metrics, renders and a video")
     demo.add_argument("--out", default="outputs/demo", help="output folder")
-    demo.add_argument("--iterations", type=int, default=1200)
+    demo.add_argument("--iterations", type=int, default=1200, help="training steps")
     demo.add_argument("--minutes", type=float, default=5.0, help="training time budget (stops early, with a checkpoint)")
-    demo.add_argument("--physics", choices=["none", "cmr"], default="none", help="add the Cauchy momentum residual")
-    demo.add_argument("--flow", choices=["none", "lpfm"], default="none", help="add flow matching (optical flow is computed first)")
+    demo.add_argument("--physics", choices=get_args(PhysicsKind), default="none", help="add the Cauchy momentum residual")
+    demo.add_argument("--flow", choices=get_args(FlowKind), default="none", help="add flow matching (optical flow is computed first)")
     demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks (not tests)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     render = bench_sub.add_parser("render", help="rasterizer speed and memory: CPU kernel vs torch reference")
-    render.add_argument("--repeats", type=int, default=7)
+    render.add_argument("--repeats", type=int, default=7, help="timed repeats per case")
     render.add_argument("--out", default="outputs/bench/render.json", help="JSON with all figures ('' for none)")
     render.add_argument("--quick", action="store_true", help="tiny cases, for a smoke test")
     render.set_defaults(func=_cmd_bench_render)
+
     quality = bench_sub.add_parser("quality", help="train + evaluate several scenes with one budget; one table")
     quality.add_argument("scenes", nargs="+", help="dataset folders")
-    quality.add_argument("--out", default="outputs/bench/quality")
+    quality.add_argument("--out", default="outputs/bench/quality", help="output folder (one run folder per scene and variant)")
     quality.add_argument("--downscale", default=None, help="factor or WxH, e.g. 400x400")
     quality.add_argument("--minutes", type=float, default=30.0, help="training time budget per run (0: none, --optim.iterations only)")
-    quality.add_argument("--variants", nargs="*", default=None, help="ablation rows per scene: base cmr full nostress lpfm (default: the config as given)")
-    quality.add_argument("--config", help="a config.json to start from")
-    _add_run_options(quality)
-    add_config_arguments(quality, TrainConfig)
+    quality.add_argument("--variants", nargs="*", default=None, choices=list(ABLATION_VARIANTS),
+                         help="ablation rows per scene (default: the config as given)")
+    _add_run_options(quality, "SCENE [SCENE ...] ")
     quality.set_defaults(func=_cmd_bench_quality)
+
     step = bench_sub.add_parser("step", help="training-step rate and its breakdown per variant, interleaved, fixed Gaussian count")
     step.add_argument("scene", help="dataset folder")
-    step.add_argument("--variants", nargs="+", default=["base", "cmr", "full"])
-    step.add_argument("--downscale", default="400x400")
+    step.add_argument("--variants", nargs="+", default=["base", "cmr", "full"], choices=list(ABLATION_VARIANTS), help="variants to time")
+    step.add_argument("--downscale", default="400x400", help="factor or WxH")
     step.add_argument("--gaussians", type=int, default=20_000, help="Gaussians (random init / subsampled cloud), no densification")
     step.add_argument("--iterations", type=int, default=60, help="timed steps per variant (after 10 warm-up steps)")
-    step.add_argument("--out", default="outputs/bench/step.json")
+    step.add_argument("--out", default="outputs/bench/step.json", help="JSON with all figures ('' for none)")
     step.add_argument("--from-run", default=None, help="start from this run's trained Gaussians (its checkpoint) instead of a random init")
-    step.add_argument("--config", help="a config.json to start from")
-    _add_run_options(step)
-    add_config_arguments(step, TrainConfig)
+    _add_run_options(step, "SCENE ")
     step.set_defaults(func=_cmd_bench_step)
-    # parsed by pidg.physics.bench itself (see main): listed here for `pidg bench -h`
-    bench_sub.add_parser("cmr", help="CMR loss cost: time per sample size, peak memory at 20k vs 200k particles", add_help=False)
+
+    cmr = bench_sub.add_parser("cmr", help="CMR loss cost: time per sample size, peak memory at 20k vs 200k particles")
+    cmr.add_argument("--samples", type=int, nargs="+", default=list(CMRBenchConfig.samples), help="sample sizes M")
+    cmr.add_argument("--particles", type=int, nargs="+", default=list(CMRBenchConfig.particles), help="particle counts N")
+    cmr.add_argument("--variants", nargs="+", default=list(CMR_BENCH_VARIANTS), choices=CMR_BENCH_VARIANTS, help="how the jet is computed")
+    cmr.add_argument("--block-size", type=int, default=PhysicsConfig.block_size, help="blocks for checkpointing")
+    cmr.add_argument("--width", type=int, default=MaterialFieldConfig.width, help="material-field MLP width")
+    cmr.add_argument("--activation", default=MaterialFieldConfig.activation, choices=get_args(Activation), help="trunk activation")
+    cmr.add_argument("--repeats", type=int, default=CMRBenchConfig.repeats, help="timed repeats")
+    cmr.add_argument("--out", default=None, help="JSON with all figures")
+    cmr.set_defaults(func=_cmd_bench_cmr)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:2] == ["bench", "cmr"]:
-        from pidg.physics.bench import main as bench_cmr
-
-        bench_cmr(argv[2:])
-        return 0
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     return args.func(args)
 
 

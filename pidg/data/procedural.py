@@ -42,6 +42,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from pidg.config_tools import check_choices
 from pidg.data.io import composite_rgba_float
 from pidg.data.ply import write_ply_points
 from pidg.data.scene import Background, Frame, PointCloud, SceneData, compute_bounds
@@ -81,6 +82,7 @@ class ProceduralSceneConfig:
     n_init_points: int = 2000
 
     def __post_init__(self) -> None:
+        check_choices(self)
         if self.n_train < 2:
             raise ValueError(f"ProceduralSceneConfig.n_train must be >= 2, got {self.n_train}")
         if self.n_test < 1 or self.n_val < 0:
@@ -92,16 +94,14 @@ class ProceduralSceneConfig:
             )
         if self.width < 8 or self.height < 8:
             raise ValueError(f"ProceduralSceneConfig: image size must be >= 8x8, got {self.width}x{self.height}")
-        if self.background not in ("white", "black"):
-            raise ValueError(f"ProceduralSceneConfig.background must be 'white' or 'black', got {self.background!r}")
         if self.n_gaussians < 500:
             raise ValueError(f"ProceduralSceneConfig.n_gaussians must be >= 500, got {self.n_gaussians}")
         if not 0.0 <= self.motion <= 1.5:  # beyond 1.5 the ring would pass through the balls
             raise ValueError(f"ProceduralSceneConfig.motion must be in [0, 1.5], got {self.motion}")
         if not (0.0 < self.fov_x_deg < 170.0 and self.camera_distance > 0.0):
             raise ValueError("ProceduralSceneConfig: need 0 < fov_x_deg < 170 and camera_distance > 0")
-        if self.init_points not in ("surface", "random") or self.n_init_points < 1:
-            raise ValueError("ProceduralSceneConfig: init_points must be 'surface' or 'random', n_init_points >= 1")
+        if self.n_init_points < 1:
+            raise ValueError(f"ProceduralSceneConfig.n_init_points must be >= 1, got {self.n_init_points}")
 
     @property
     def background_rgb(self) -> tuple[float, float, float]:

@@ -23,6 +23,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from pidg.config_tools import check_choices
 from pidg.render.camera import Camera
 
 logger = logging.getLogger(__name__)
@@ -66,32 +67,36 @@ class DataConfig:
     """
 
     path: Path | str
-    background: Background = "black"  # the PIDG paper trains on a black background
+    """The dataset folder (D-NeRF / BlenderNeRF / PIDG: transforms_*.json; HyperNeRF / Nerfies: dataset.json)."""
+    background: Background = "black"
+    """Background the RGBA images are composited on and the renders are drawn over (the PIDG paper: black)."""
     downscale: float | tuple[int, int] = 1.0
+    """Image size: a factor (2 halves both sides) or WIDTHxHEIGHT, e.g. 400x400 for the NeRF-era D-NeRF protocol."""
     time_source: TimeSource = "json"
+    """Blender-style data: json uses each frame's time; frame_number derives it from the number at the end of the
+    file name, normalised over all splits (the Dry Ice scene's json times are normalised per split)."""
     splits: tuple[str, ...] = ("train", "test")
+    """Splits to load, of train, val, test."""
     max_frames: int | None = None
+    """Keep an evenly spaced subset of at most this many frames per split (tests, quick looks); none = all."""
     load_masks: bool = True
-    # A dynamic dataset without per-frame times is almost always a mistake, so it is an error unless allowed;
-    # then time = index / (n - 1) within each split.
+    """Read motion masks where the dataset ships them (they drive static/dynamic decoupling and the flow target)."""
+    # A dynamic dataset without per-frame times is almost always a mistake, so it is an error unless allowed.
     allow_missing_time: bool = False
-    # HyperNeRF / Nerfies only.
+    """Accept frames without a time: then time = index / (n - 1) within each split."""
     hypernerf_split: HyperNerfSplit = "vrig"
-    hypernerf_image_scale: int = 2  # which rgb/{1,2,4}x folder to read
-    hypernerf_interp_interval: int = 4  # "interp": train on every k-th frame, test on the midpoints
-    num_workers: int = 0  # image-decoding threads; 0 = min(8, cpu count)
+    """HyperNeRF / Nerfies: vrig (the second camera is the test set) or interp (every k-th frame trains)."""
+    hypernerf_image_scale: int = 2
+    """HyperNeRF / Nerfies: which rgb/{1,2,4}x folder to read."""
+    hypernerf_interp_interval: int = 4
+    """HyperNeRF "interp": train on every k-th frame, test on the midpoints (an even k >= 2)."""
+    num_workers: int = 0
+    """Image-decoding threads; 0 = min(8, CPU count)."""
     progress: bool = True
+    """Show a progress bar while images load."""
 
     def __post_init__(self) -> None:
-        # Accept lists for the tuple fields, as they come back from a config saved as JSON/YAML.
-        if isinstance(self.downscale, list):
-            object.__setattr__(self, "downscale", tuple(self.downscale))
-        if isinstance(self.splits, (list, str)):
-            object.__setattr__(self, "splits", (self.splits,) if isinstance(self.splits, str) else tuple(self.splits))
-        if self.background not in ("white", "black"):
-            raise ValueError(f"DataConfig.background must be 'white' or 'black', got {self.background!r}")
-        if self.time_source not in ("json", "frame_number"):
-            raise ValueError(f"DataConfig.time_source must be 'json' or 'frame_number', got {self.time_source!r}")
+        check_choices(self)
         if isinstance(self.downscale, tuple):
             if len(self.downscale) != 2 or any(int(v) != v or v <= 0 for v in self.downscale):
                 raise ValueError(f"DataConfig.downscale size must be (width, height) > 0, got {self.downscale}")
@@ -102,8 +107,6 @@ class DataConfig:
             raise ValueError(f"DataConfig.splits must be a non-empty subset of {SPLIT_NAMES}, got {self.splits}")
         if self.max_frames is not None and self.max_frames < 1:
             raise ValueError(f"DataConfig.max_frames must be >= 1, got {self.max_frames}")
-        if self.hypernerf_split not in ("vrig", "interp"):
-            raise ValueError(f"DataConfig.hypernerf_split must be 'vrig' or 'interp', got {self.hypernerf_split!r}")
         if self.hypernerf_image_scale < 1:
             raise ValueError(f"DataConfig.hypernerf_image_scale must be >= 1, got {self.hypernerf_image_scale}")
         if self.hypernerf_interp_interval < 2 or self.hypernerf_interp_interval % 2:

@@ -1,4 +1,5 @@
-"""Evaluate a trained model on a split: per-view and mean metrics, render speed, memory, pictures."""
+"""Evaluate a scene model on a split: per-view and mean metrics, render speed, memory, pictures; and the errors of
+its rendered flows against the flow targets of the training pairs."""
 from __future__ import annotations
 
 import json
@@ -7,6 +8,7 @@ import math
 import resource
 import time
 from pathlib import Path
+from collections import defaultdict
 from typing import Callable, Sequence
 
 import torch
@@ -14,7 +16,9 @@ from tqdm import tqdm
 
 from pidg.data.scene import Frame
 from pidg.evaluation.images import colorize_scalar, save_png
-from pidg.evaluation.metrics import compute_metrics
+from pidg.flow import FlowCache, FlowConfig, render_pair_flows
+from pidg.metrics import NetName, compute_metrics
+from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import RenderOutput
 
 logger = logging.getLogger(__name__)
@@ -47,7 +51,7 @@ def evaluate_views(
         out = render(frame)
         render_seconds += time.perf_counter() - t0
         pred = out.rgb.clamp(0, 1)
-        metrics = compute_metrics(pred, frame.image, lpips_nets=lpips_nets)
+        metrics = compute_metrics(pred, frame.image.to(pred.device), lpips_nets=lpips_nets)
         per_view.append({"view": frame.name or str(i), "time": frame.time, **metrics})
         if out_dir is not None and save_images:
             stem = (frame.name or f"{i:04d}").replace("/", "_")
@@ -66,7 +70,37 @@ def evaluate_views(
         "peak_rss_mb": peak_rss_mb(),
         "per_view": per_view,
     }
+    return result
+
+
+def evaluate_model(
+    model: DynamicGaussians, frames: Sequence[Frame], out_dir: Path | None = None,
+    lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), info: dict | None = None, progress: bool = True,
+) -> dict:
+    """:func:`evaluate_views` of the model's renders at each frame's camera and time, with its Gaussian count and
+    ``info`` (facts to keep beside the metrics, e.g. the training steps); with ``out_dir``, the renders, ground
+    truth and depth pictures and ``metrics.json`` go there."""
+    result = evaluate_views(lambda frame: model.render(frame.camera, frame.time), frames, out_dir, lpips_nets, progress=progress)
+    result.update(gaussians=model.num_gaussians, **(info or {}))
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "metrics.json").write_text(json.dumps(result, indent=2))
     return result
+
+
+@torch.no_grad()
+def flow_end_point_errors(model: DynamicGaussians, cache: FlowCache, config: FlowConfig) -> dict[str, float]:
+    """Mean end-point error (pixels) of the rendered Gaussian flow and velocity flow against flow_gt over all
+    consecutive training pairs (supervised pixels only), and the target's mean size. The velocity flow needs a
+    material field (absent in the no-physics, no-flow model)."""
+    sums: dict[str, float] = defaultdict(float)
+    pixels = 0
+    for k in range(len(cache)):
+        _, _, result = render_pair_flows(model, cache.pair(k), config)
+        n = result.valid_pixels
+        pixels += n
+        sums["gaussian_flow_epe"] += result.epe_gaussian * n
+        if result.epe_velocity is not None:
+            sums["velocity_flow_epe"] += result.epe_velocity * n
+        sums["target_flow_px"] += result.mean_target_px * n
+    return {k: v / max(pixels, 1) for k, v in sums.items()} | {"flow_supervised_pixels": float(pixels)}

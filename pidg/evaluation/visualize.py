@@ -14,7 +14,8 @@ from torch import Tensor
 from pidg.data.scene import Frame
 from pidg.evaluation.flow_vis import flow_quiver, flow_rgb_tensor
 from pidg.evaluation.images import colorize_scalar
-from pidg.flow import FlowPair, decode_flows, lpfm_loss
+from pidg.flow import FlowConfig, FlowPair, decode_flows, render_pair_flows
+from pidg.models.dynamic_gaussians import DynamicGaussians
 
 MIN_ALPHA = 0.5  # pixels less opaque than this show no field value (they mix surface and background)
 
@@ -37,23 +38,22 @@ def _per_pixel(features: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
 
 @torch.no_grad()
 def material_field_images(
-    trainer, frame: Frame, dt: float, max_velocity_px: float | None = None, max_stress: float | None = None
+    model: DynamicGaussians, frame: Frame, dt: float, max_velocity_px: float | None = None, max_stress: float | None = None
 ) -> FieldImages:
     """Velocity and stress of the material field at the Gaussians' positions at ``frame.time``, seen from its camera.
 
     The projected velocity of a Gaussian is proj(x + v dt) - proj(x) in pixels (``dt`` in the field's physics time
-    units, see ``PhysicsConfig.time_scale``); pass the same ``max_*`` for every
-    frame of a video so colours mean the same thing over time.
+    units, see :class:`pidg.models.time_axis.TimeAxis`); pass the same ``max_*`` for every frame of a video so
+    colours mean the same thing over time.
     """
-    if trainer.material_field is None:
-        raise ValueError("this run has no material field (trained with --physics none --flow none)")
-    means, quats, log_scales = trainer.gaussians_at(frame.time)
-    v, sigma = trainer.material_field(means, frame.time, trainer.model.particle_index)
+    state = model.at(frame.time)
+    means = state.means
+    v, sigma = model.field_values(means, frame.time)
     uv, _ = frame.camera.project_points(means)
     uv_next, _ = frame.camera.project_points(means + v * dt)
     stress = sigma[:, :3].square().sum(-1) + 2.0 * sigma[:, 3:].square().sum(-1)  # |sigma|_F^2 of the symmetric matrix
     features = torch.cat([uv_next - uv, stress.sqrt().unsqueeze(-1)], dim=-1)
-    out = trainer._rasterize(means, quats, log_scales, frame, features=features)
+    out = model.render_state(state, frame.camera, features)
     values, valid = _per_pixel(out.features, out.alpha)
     flow, stress_img = values[..., :2], values[..., 2]
     vmax = max_velocity_px if max_velocity_px is not None else float(flow[valid].norm(dim=-1).max()) if valid.any() else 1.0
@@ -74,16 +74,13 @@ def material_field_images(
 
 
 @torch.no_grad()
-def flow_comparison(trainer, pair: FlowPair, max_magnitude: float | None = None) -> tuple[Tensor, dict[str, float]]:
+def flow_comparison(
+    model: DynamicGaussians, pair: FlowPair, config: FlowConfig, max_magnitude: float | None = None
+) -> tuple[Tensor, dict[str, float]]:
     """[H, 3W, 3]: motion flow (flow_gt, black where unsupervised) | Gaussian flow | velocity flow, all on frame t's
     pixels and one colour scale; and the end-point errors of the rendered flows on the supervised pixels."""
-    state_t = trainer.gaussians_at(pair.frame0.time)
-    state_t1 = trainer.gaussians_at(pair.frame1.time)
-    features = trainer._flow_features(pair.frame0, state_t, state_t1, pair.dt)
-    out = trainer._rasterize(*state_t, pair.frame0, features=features)
+    out, target, result = render_pair_flows(model, pair, config)
     flow_g, flow_v, drawn = decode_flows(out.features, out.alpha)
-    target = trainer.flow_target(pair, state_t1)
-    result = lpfm_loss(flow_g, flow_v, target, out.alpha, trainer.config.flow)
     scale = max_magnitude if max_magnitude is not None else float(target.flow[target.valid].norm(dim=-1).max()) if target.valid.any() else 1.0
     scale = max(scale, 1e-6)
     panels = [
@@ -96,11 +93,12 @@ def flow_comparison(trainer, pair: FlowPair, max_magnitude: float | None = None)
 
 
 @torch.no_grad()
-def dynamic_split_image(trainer, frame: Frame) -> Tensor:
+def dynamic_split_image(model: DynamicGaussians, frame: Frame) -> Tensor:
     """The render tinted by the decoupling: dynamic Gaussians red, static ones blue (weighted per pixel)."""
-    means, quats, log_scales = trainer.gaussians_at(frame.time)
-    dynamic = trainer.model.buffers["is_dynamic"].to(means.dtype).unsqueeze(-1)
-    out = trainer._rasterize(means, quats, log_scales, frame, features=dynamic)
+    if model.dynamic_mask is None:
+        raise ValueError("this model has no static/dynamic split (decoupling runs when the data has motion masks)")
+    state = model.at(frame.time)
+    out = model.render_state(state, frame.camera, model.dynamic_mask.to(state.means.dtype).unsqueeze(-1))
     share, _ = _per_pixel(out.features, out.alpha)
     tint = torch.stack([share[..., 0], torch.zeros_like(share[..., 0]), 1.0 - share[..., 0]], dim=-1)
     weight = (out.alpha > 0.05).to(tint.dtype).unsqueeze(-1) * 0.5

@@ -30,7 +30,8 @@ from pidg.flow.optical_flow import (
     forward_backward_consistency,
     make_estimator,
 )
-from pidg.flow.preprocess import FlowCache, FlowPair, preprocess_flow, run_preprocess
+from pidg.flow.model_flow import flow_channels, model_flow_target, render_pair_flows, rendered_depth
+from pidg.flow.preprocess import FlowCache, FlowPair, open_flow_cache, preprocess_flow, run_preprocess
 
 __all__ = [
     "FLOW_CHANNELS",
@@ -47,16 +48,21 @@ __all__ = [
     "depth_from_render",
     "dilate_mask",
     "end_point_error",
+    "flow_channels",
     "flow_features",
     "flow_target_for_pair",
     "forward_backward_consistency",
     "gaussian_flow_features",
     "lpfm_loss",
     "make_estimator",
+    "model_flow_target",
     "motion_flow_target",
     "motion_mask_from_flow",
+    "open_flow_cache",
     "preprocess_flow",
     "project_velocity_means",
+    "render_pair_flows",
+    "rendered_depth",
     "run_preprocess",
     "warp_to_first_frame",
 ]

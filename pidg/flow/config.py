@@ -8,6 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from pidg.config_tools import check_choices
+
 FlowKind = Literal["none", "lpfm"]
 EstimatorName = Literal["dis", "deepflow", "tvl1", "raft"]
 DisPreset = Literal["ultrafast", "fast", "medium"]
@@ -22,38 +24,45 @@ class FlowConfig:
     """
 
     kind: FlowKind = "none"
-    lambda_lpfm: float = 0.01  # weight of L_LPFM in the total loss (paper)
-    lambda_gaussian: float = 0.5  # lambda_g (paper)
-    lambda_velocity: float = 0.5  # lambda_v (paper)
-    start: int = 0  # first training step that uses LPFM
+    """lpfm adds Lagrangian particle flow matching against preprocessed optical flow (the full PIDG); none leaves it out."""
+    lambda_lpfm: float = 0.01
+    """Weight of L_LPFM in the total loss (paper: 0.01)."""
+    lambda_gaussian: float = 0.5
+    """lambda_g: weight of the Gaussian flow's L1 error inside L_LPFM (paper: 0.5)."""
+    lambda_velocity: float = 0.5
+    """lambda_v: weight of the velocity flow's L1 error inside L_LPFM (paper: 0.5)."""
+    start: int = 0
+    """First training step that uses LPFM (then every step)."""
 
     # optical flow estimation (preprocessing)
-    estimator: EstimatorName = "dis"  # OpenCV DIS (fast), DeepFlow, Dual TV-L1, or RAFT with local weights
+    estimator: EstimatorName = "dis"
+    """Optical-flow estimator: OpenCV DIS (fast), DeepFlow, Dual TV-L1, or RAFT from local weights."""
     dis_preset: DisPreset = "medium"
-    raft_weights: Path | None = None  # local RAFT (.pt2 export, TorchScript, or torchvision state dict)
-    # forward-backward check |f(p) + b(p + f(p))|^2 < alpha (|f(p)|^2 + |b(p + f(p))|^2) + beta (pixels^2)
+    """OpenCV DIS preset (speed against accuracy)."""
+    raft_weights: Path | None = None
+    """Local RAFT weights (.pt2 export, TorchScript, or a torchvision state dict); nothing is downloaded."""
     consistency_alpha: float = 0.01
+    """Forward-backward check |f(p) + b(p + f(p))|^2 < alpha (|f(p)|^2 + |b(p + f(p))|^2) + beta: alpha."""
     consistency_beta: float = 0.5
-    cache_dir: str = "flow_cache"  # relative to the dataset folder, or an absolute path
+    """The same check's beta, in pixels^2."""
+    cache_dir: str = "flow_cache"
+    """Where the optical flow is cached: relative to the dataset folder, or an absolute path."""
 
     # ground-truth motion flow
-    mask_dilation: int = 3  # pixels the motion mask of frame t is dilated by (square structuring element)
-    motion_threshold: float = 1.0  # pixels of camera-compensated flow above which a pixel counts as moving
-    min_alpha: float = 0.05  # rendered alpha below which a pixel's rendered flow is not supervised
+    mask_dilation: int = 3
+    """Pixels the motion mask of frame t is dilated by (square structuring element)."""
+    motion_threshold: float = 1.0
+    """Pixels of camera-compensated flow above which a pixel counts as moving (datasets without motion masks)."""
+    min_alpha: float = 0.05
+    """Rendered alpha below which a pixel's rendered flow is not supervised."""
     # flow_gt needs frame t+1's depth, rendered by the model (a no-grad render + the decomposition, ~100-250 ms per
-    # step on a CPU at 400x400). A pair's target is rebuilt when it is older than this many steps (1 = every step);
-    # the depth of a converging model changes slowly, and each pair is visited once per epoch anyway.
+    # step on a CPU at 400x400). The depth of a converging model changes slowly, and each pair is visited once per
+    # epoch anyway.
     target_refresh_steps: int = 300
+    """A pair's flow target (built with the model's rendered depth) is rebuilt when older than this many steps."""
 
     def __post_init__(self) -> None:
-        if isinstance(self.raft_weights, str):
-            self.raft_weights = Path(self.raft_weights) if self.raft_weights else None
-        if self.kind not in ("none", "lpfm"):
-            raise ValueError(f"FlowConfig.kind must be 'none' or 'lpfm', got {self.kind!r}")
-        if self.estimator not in ("dis", "deepflow", "tvl1", "raft"):
-            raise ValueError(f"FlowConfig.estimator must be dis, deepflow, tvl1 or raft, got {self.estimator!r}")
-        if self.dis_preset not in ("ultrafast", "fast", "medium"):
-            raise ValueError(f"FlowConfig.dis_preset must be ultrafast, fast or medium, got {self.dis_preset!r}")
+        check_choices(self)
         for name in ("lambda_lpfm", "lambda_gaussian", "lambda_velocity", "consistency_alpha", "consistency_beta",
                      "motion_threshold", "min_alpha"):
             if not float(getattr(self, name)) >= 0.0:

@@ -48,6 +48,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from pidg.data import load_scene
 from pidg.data.scene import DataConfig, DatasetError, Frame, SceneData
 from pidg.flow.config import FlowConfig
 from pidg.flow.optical_flow import (
@@ -321,10 +322,19 @@ def flow_summary(cache: FlowCache) -> dict[str, Any]:
     }
 
 
+def open_flow_cache(scene: SceneData, config: FlowConfig, fallback_dir: Path, progress: bool = True) -> FlowCache:
+    """The scene's flow cache, computed where missing: next to the dataset, or in ``fallback_dir`` (e.g. the run
+    folder) when the dataset folder is missing or read-only."""
+    root = Path(scene.root)
+    cache_root = None
+    if not (root.is_dir() and os.access(root, os.W_OK)):
+        cache_root = Path(fallback_dir)
+        logger.info("dataset folder %s is not writable: caching optical flow in %s", root, cache_root)
+    return preprocess_flow(scene, config, cache_root, progress=progress)
+
+
 def run_preprocess(data_config: DataConfig, flow_config: FlowConfig, cache_root: Path | None = None) -> dict[str, Any]:
     """Load the training split of a dataset, compute its flow cache, and return a summary dict (for the CLI)."""
-    from pidg.data import load_scene
-
     start = time.perf_counter()
     scene = load_scene(replace(data_config, splits=("train",)))
     loaded = time.perf_counter()

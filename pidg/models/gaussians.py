@@ -30,20 +30,28 @@ MIN_SQ_DIST = 1e-7  # 3DGS clamps the squared kNN distance here so that duplicat
 class GaussianModelConfig:
     """How Gaussians are initialised and how their colour model grows."""
 
-    sh_degree: int = 3  # maximum SH degree; coefficient tensors are always sized for it
-    sh_degree_interval: int = 1000  # the active degree rises by one every this many steps (3DGS)
+    sh_degree: int = 3
+    """Maximum spherical-harmonics degree of the colours (0..3); coefficient tensors are sized for it."""
+    sh_degree_interval: int = 1000
+    """The active SH degree rises by one every this many steps (3DGS)."""
     init_opacity: float = 0.1
-    knn_neighbors: int = 3  # initial scale = RMS distance to this many nearest neighbours (3DGS distCUDA2)
-    # Random initialisation when the scene has no point cloud (3DGS uses 100k points in [-1.3, 1.3]^3 for Blender
-    # scenes). Without an explicit box the cube is centred where the training cameras look and its half-size is
-    # ``random_init_box_fraction`` x the median camera distance to that point (0.33 x 4.0 ~ 1.3 for D-NeRF rigs).
+    """Opacity of every initial Gaussian, in (0, 1)."""
+    knn_neighbors: int = 3
+    """Initial scale = RMS distance to this many nearest neighbours (3DGS's distCUDA2)."""
     random_init_points: int = 100_000
+    """Points of the random initialisation, used when the scene has no point cloud (3DGS: 100k in [-1.3, 1.3]^3
+    for Blender scenes)."""
     random_init_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    """World box (min xyz, max xyz) of the random initialisation; none: a cube centred where the training cameras
+    look, of half-size random_init_box_fraction x their median distance to that point."""
     random_init_box_fraction: float = 0.33
-    # Keep at most this many points of a dataset point cloud (a seeded random subset; 0 = all). Dry Ice ships
-    # 100k points: on a CPU a 20-30k subset trains ~3x faster per step and densification adds detail back.
+    """Half-size of the automatic random-initialisation cube as a fraction of the camera distance (0.33 x 4.0 ~
+    1.3 for D-NeRF rigs)."""
     max_init_points: int = 0
+    """Keep at most this many points of a dataset point cloud, a seeded random subset (0 = all). Dry Ice ships
+    100k points: on a CPU a 20-30k subset trains ~3x faster per step and densification adds detail back."""
     seed: int = 42
+    """Seed of the random initialisation and of the point-cloud subset."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.sh_degree <= 3:
@@ -56,9 +64,6 @@ class GaussianModelConfig:
             raise ValueError(f"GaussianModelConfig.max_init_points must be >= 0 (0 = all), got {self.max_init_points}")
         if self.knn_neighbors < 1 or self.random_init_points < 1:
             raise ValueError("GaussianModelConfig.knn_neighbors and random_init_points must be >= 1")
-        if isinstance(self.random_init_box, list):  # from a JSON/YAML config
-            lo, hi = self.random_init_box
-            self.random_init_box = (tuple(lo), tuple(hi))  # type: ignore[assignment]
 
 
 def subsample_points(points: PointCloud, max_points: int, seed: int) -> PointCloud:

@@ -19,13 +19,14 @@ Why concatenation rather than the K-planes / HexPlane product: the paper's featu
 five others, so one small plane silences all of them and the derivative picks up six product-rule terms; with
 concatenation every plane's contribution and derivative is independent and the MLP learns the interactions.
 
-Velocity is in world units per unit of normalised time (the whole sequence is t in [0, 1]), so a displacement
-over one frame is v / (n_frames - 1).
+Units: the field is evaluated at dataset time t in [0, 1] (the whole sequence), but its velocity is in world
+units per *physics* time unit (:class:`pidg.models.time_axis.TimeAxis`; by default one training-frame interval),
+so a particle moves by about v * TimeAxis.to_physics(dt) over a dataset-time span dt: v itself per frame.
 
 ``jet`` returns the field and its exact first derivatives with respect to (x, y, z, t) by forward-mode tangents
 written by hand: four tangent directions are pushed through the network as one [4, M, D] tensor next to the
 primal [M, D], so the derivatives cost a few matmuls (torch's grid_sample has no forward-mode derivative, and
-``torch.func.jvp`` of ``forward`` measured ~3.5x slower per training step, see ``pidg.physics.bench``). The result
+``torch.func.jvp`` of ``forward`` measured ~3.5x slower per training step, see ``pidg bench cmr``). The result
 is an ordinary autograd graph: L_CMR, which contains these derivatives, is differentiated with respect to the
 parameters and the positions by ``backward()`` as usual.
 """
@@ -34,11 +35,14 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from pidg.config_tools import check_choices
 from pidg.models.deformation.base import (
     GROUP_GRID,
     GROUP_MLP,
@@ -46,8 +50,7 @@ from pidg.models.deformation.base import (
     NormalizedPositions,
     times_column,
 )
-from pidg.physics.config import PhysicsConfig
-from pidg.physics.jet import FieldJet
+from pidg.models.jet import FieldJet
 
 GROUP_EMBEDDING = "embedding"  # the index embedding table: its own learning rate
 
@@ -58,6 +61,52 @@ TEMPORAL_AXES = ((0, 1, 2), (3, 3, 3))
 NUM_DIRECTIONS = 4  # tangent directions d/dx, d/dy, d/dz, d/dt
 
 ActivationFn = Callable[[Tensor], tuple[Tensor, Tensor]]
+Activation = Literal["tanh", "silu", "softplus"]
+
+
+@dataclass
+class MaterialFieldConfig:
+    """Sizes of the material field f_theta (paper Sec. 4.2; NOTES.md section 4). It exists when the momentum
+    residual (``--physics cmr``) or the flow loss (``--flow lpfm``) needs a velocity; its learning rates are
+    ``--optim.material_*``."""
+
+    # Coarse planes: a bilinear lookup's derivative is piecewise constant per cell, so fine planes make the
+    # velocity gradient noisy; the index embedding carries per-particle detail instead.
+    spatial_resolution: int = 32
+    """Cells per spatial axis of the six planes."""
+    time_resolution: int = 16
+    """Cells along t of the XT, YT, ZT planes."""
+    plane_channels: int = 8
+    """Feature channels per plane."""
+    time_frequencies: int = 6
+    """n: the Fourier time encoding sin/cos(pi 2^k (2t - 1)), k < n."""
+    embedding_dim: int = 64
+    """H: size of the particle-index embedding (paper: 64)."""
+    width: int = 256
+    """MLP width (paper: 256)."""
+    depth: int = 2
+    """Hidden layers of the shared MLP trunk (paper: 2)."""
+    activation: Activation = "tanh"
+    """Smooth trunk activation (the residual differentiates through its derivative, so not ReLU)."""
+    init_std: float = 0.1
+    """Standard deviation of the initial plane and embedding values."""
+    velocity_init_scale: float = 0.01
+    """The velocity head starts at PyTorch's default init times this (v = sigma = 0 would be a stationary point)."""
+    stress: bool = True
+    """False: the paper's "no stress" ablation, sigma == 0."""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
+        positive = {"width": self.width, "depth": self.depth, "plane_channels": self.plane_channels, "embedding_dim": self.embedding_dim}
+        bad = {k: v for k, v in positive.items() if v < 1}
+        if bad:
+            raise ValueError(f"MaterialFieldConfig: these must be >= 1: {bad}")
+        if self.spatial_resolution < 2 or self.time_resolution < 2:
+            raise ValueError(
+                f"MaterialFieldConfig: plane resolutions must be >= 2, got {self.spatial_resolution}, {self.time_resolution}"
+            )
+        if self.time_frequencies < 0:
+            raise ValueError(f"MaterialFieldConfig: time_frequencies must be >= 0, got {self.time_frequencies}")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -81,9 +130,9 @@ def _softplus(z: Tensor) -> tuple[Tensor, Tensor]:
 #: needs phi''. With ReLU phi'' = 0, grad v would be piecewise constant in x (jumping across activation
 #: boundaries) and the loss gradient with respect to the positions would lose every curvature term. tanh is the
 #: default because it is the cheapest: one transcendental per element and phi' = 1 - phi^2 from the output.
-ACTIVATIONS: dict[str, ActivationFn] = {"tanh": _tanh, "silu": _silu, "softplus": _softplus}
+ACTIVATIONS: dict[Activation, ActivationFn] = {"tanh": _tanh, "silu": _silu, "softplus": _softplus}
 #: the same functions without the derivative, for ``forward``
-ACTIVATION_VALUES: dict[str, Callable[[Tensor], Tensor]] = {"tanh": torch.tanh, "silu": F.silu, "softplus": F.softplus}
+ACTIVATION_VALUES: dict[Activation, Callable[[Tensor], Tensor]] = {"tanh": torch.tanh, "silu": F.silu, "softplus": F.softplus}
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -134,9 +183,9 @@ def _axis_scales(axes: tuple[tuple[int, ...], tuple[int, ...]], scale: Tensor) -
 class MaterialField(nn.Module):
     """f_theta(x, t, i) -> (v, sigma); see the module docstring."""
 
-    def __init__(self, bounds: Bounds | Tensor | object | None, num_particles: int, config: PhysicsConfig | None = None) -> None:
+    def __init__(self, bounds: Bounds | Tensor | object | None, num_particles: int, config: MaterialFieldConfig | None = None) -> None:
         super().__init__()
-        self.config = cfg = config or PhysicsConfig()
+        self.config = cfg = config or MaterialFieldConfig()
         if num_particles < 1:
             raise ValueError(f"MaterialField: need at least one particle, got num_particles={num_particles}")
         self.num_particles = int(num_particles)
@@ -160,7 +209,8 @@ class MaterialField(nn.Module):
 
     # -- public API ---------------------------------------------------------------------------------------------
     def forward(self, x: Tensor, t: float | Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
-        """v [M, 3] and sigma [M, 6] at world positions x [M, 3], times t (float or [M], in [0, 1]), indices [M]."""
+        """v [M, 3] (world units per physics time unit) and sigma [M, 6] at world positions x [M, 3], dataset times t
+        (float or [M], in [0, 1]) and particle indices [M]."""
         x, times = self._check_inputs(x, t, index)
         hidden = self._features(x, times, index)
         for layer in self.trunk:
@@ -210,7 +260,8 @@ class MaterialField(nn.Module):
         )
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
-        """Parameters by optimiser group: planes (``GROUP_GRID``), MLP (``GROUP_MLP``), ``GROUP_EMBEDDING``."""
+        """Parameters by optimiser group: planes (``GROUP_GRID``), MLP (``GROUP_MLP``), ``GROUP_EMBEDDING``. The
+        embedding's gradient is sparse (only the rows of the particles evaluated), so it wants a sparse optimiser."""
         special = {id(self.spatial_planes), id(self.temporal_planes), id(self.index_embedding)}
         groups = {
             GROUP_GRID: [self.spatial_planes, self.temporal_planes],
@@ -218,31 +269,6 @@ class MaterialField(nn.Module):
             GROUP_EMBEDDING: [self.index_embedding],
         }
         return {name: [p for p in params if p.requires_grad] for name, params in groups.items()}
-
-    def make_optimizers(self, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> dict[str, torch.optim.Optimizer]:
-        """Adam over the planes and the MLP, and a lazy ``SparseAdam`` over the index embedding, with the config's
-        learning rates (each group also carries ``base_lr`` and ``name`` for schedules).
-
-        The embedding's gradient is sparse (only the M sampled rows): a dense one would cost a zero-filled [P, H]
-        tensor and a full Adam update per step, i.e. time and memory growing with the number of particles
-        (measured: +24 ms per step at P = 200k). SparseAdam also leaves rows that were not sampled untouched.
-        """
-        cfg = self.config
-        groups = self.parameter_groups()
-        lrs = {GROUP_GRID: cfg.mlp_lr * cfg.plane_lr_factor, GROUP_MLP: cfg.mlp_lr, GROUP_EMBEDDING: cfg.embedding_lr}
-
-        def group(name: str) -> dict:
-            return {"params": groups[name], "lr": lrs[name], "base_lr": lrs[name], "name": f"material_{name}"}
-
-        dense = [group(name) for name in (GROUP_GRID, GROUP_MLP) if groups[name]]
-        optimizers: dict[str, torch.optim.Optimizer] = {}
-        if dense:
-            from pidg.training.optim import adam  # fused when possible; imported here to keep models below training
-
-            optimizers["material"] = adam(dense, betas=betas, eps=eps)
-        if groups[GROUP_EMBEDDING]:
-            optimizers["material_embedding"] = torch.optim.SparseAdam([group(GROUP_EMBEDDING)], betas=betas, eps=eps)
-        return optimizers
 
     # -- inputs and features ------------------------------------------------------------------------------------
     def _check_inputs(self, x: Tensor, t: float | Tensor, index: Tensor) -> tuple[Tensor, Tensor]:

@@ -6,13 +6,16 @@ Conventions (NOTES.md section 5), with the jet layout dv_dx[m, j, i] = d v_j / d
     symmetric (e.g. shear flow v = (y, 0, 0): (v . grad) v = 0 but grad(|v|^2 / 2) = (0, y, 0));
   * (div sigma)_j = sum_i d sigma_ji / d x_i with sigma symmetric, assembled from (xx, yy, zz, xy, xz, yz).
 
+Units: positions in world units, velocities in world units per physics time unit, the residual in world units per
+physics time unit squared (at unit density); see :mod:`pidg.models.time_axis`.
+
 ``cmr_loss`` is what the trainer calls every step (from ``PhysicsConfig.start`` on): it draws M particles
 (``samples``) without replacement from the N deformed Gaussians and evaluates the field's jet on them in blocks of
 ``block_size``. Only those M rows ever go through the network, so time and memory are independent of N apart from
 drawing the subset (paper supp. "Block-sampled CMR"). The paper frees each block's graph by calling backward per
 block; here the loss is one scalar the trainer adds to its total, and ``checkpoint_blocks`` is the equivalent:
 each block's activations are recomputed during backward instead of being stored. Measured peak RSS growth of one
-step (``pidg.physics.bench``): ~40 MiB at M = 1024 for both N = 20k and 200k; at M = 4096, 155 MiB in one block,
+step (``pidg bench cmr``): ~40 MiB at M = 1024 for both N = 20k and 200k; at M = 4096, 155 MiB in one block,
 110 MiB in blocks of 1024, 60 MiB in checkpointed blocks of 1024 (+15-30% time).
 """
 from __future__ import annotations
@@ -25,8 +28,9 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from pidg.models.deformation.base import times_column
+from pidg.models.jet import SYMMETRIC_INDEX, FieldJet
+from pidg.models.time_axis import TimeAxis
 from pidg.physics.config import PhysicsConfig
-from pidg.physics.jet import SYMMETRIC_INDEX, FieldJet
 
 #: names of ``CMRResult.stats``: means over the sampled particles of the norms of these [M, 3] / [M, 6] rows
 STAT_NAMES = ("residual", "velocity", "stress", "inertia", "stress_divergence")
@@ -83,18 +87,17 @@ def sample_rows(n: int, m: int, generator: torch.Generator | None = None) -> Ten
     return torch.randperm(n, generator=generator)[:m]
 
 
-def _block_terms(
-    field: JetField, x: Tensor, times: Tensor, index: Tensor, density: float, stress: bool, time_scale: float = 1.0
-) -> tuple[Tensor, Tensor]:
+def _block_terms(field: JetField, x: Tensor, times: Tensor, index: Tensor, density: float, time_scale: float) -> tuple[Tensor, Tensor]:
     """Sum over the block of |r|^2 and the detached sums of the diagnostic norms (STAT_NAMES order).
 
-    ``time_scale``: physics time units per unit of the field's time input, so dv/d(tau) = dv/dt / time_scale.
+    ``time_scale``: physics time units per unit of the field's time input, so dv/d(tau) = dv/dt / time_scale. A
+    field without stress returns zero stress derivatives, so its divergence is exactly 0.
     """
     jet = field.jet(x, times, index)
     if time_scale != 1.0:
         jet = replace(jet, dv_dt=jet.dv_dt / time_scale)
     inertia = density * material_acceleration(jet)
-    divergence = stress_divergence(jet.dsigma_dx) if stress else torch.zeros_like(inertia)
+    divergence = stress_divergence(jet.dsigma_dx)
     residual = inertia - divergence
     rows = (residual, jet.v, jet.sigma, inertia, divergence)
     stats = torch.stack([r.detach().norm(dim=-1).sum() for r in rows])
@@ -107,15 +110,15 @@ def cmr_loss(
     t: float | Tensor,
     index: Tensor,
     config: PhysicsConfig,
+    time_axis: TimeAxis,
     generator: torch.Generator | None = None,
-    time_scale: float | None = None,
 ) -> CMRResult:
-    """L_CMR = mean over M sampled particles of |r|^2 at their deformed positions and time.
+    """L_CMR = mean over M sampled particles of |r|^2 at their deformed positions and time, in physics time units.
 
     positions [N, 3]: the Gaussians' positions at time t (the deformation's output; gradients flow into it unless
-    ``config.detach_positions``). t: float or [N] in [0, 1]. index [N]: ``GaussianModel.particle_index``.
+    ``config.detach_positions``). t: dataset time, float or [N] in [0, 1]. index [N]: ``GaussianModel.particle_index``.
+    time_axis: the scene's clocks (dv/d tau = dv/dt / ``time_axis.physics_per_dataset``).
     generator: the trainer's CPU generator for the subset (saved in checkpoints for reproducibility).
-    time_scale: physics time units per unit of t (dv/d tau = dv/dt / time_scale); see ``PhysicsConfig.time_scale``.
     """
     if positions.dim() != 2 or positions.shape[1] != 3:
         raise ValueError(f"cmr_loss: positions must be [N, 3], got {list(positions.shape)}")
@@ -128,10 +131,6 @@ def cmr_loss(
         bad = torch.nonzero(~torch.isfinite(positions.detach()).all(dim=1)).squeeze(1)
         raise ValueError(f"cmr_loss: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
     times = times_column(t, n, positions)
-    # the trainer passes the resolved scale; without one, config.time_scale, and 0 ("per frame": unknown here) = 1
-    time_scale = time_scale if time_scale is not None else (config.time_scale or 1.0)
-    if time_scale <= 0:
-        raise ValueError(f"cmr_loss: time_scale must be > 0, got {time_scale}")
     x = positions.detach() if config.detach_positions else positions
     rows = sample_rows(n, config.samples, generator)
     if rows is not None:
@@ -142,7 +141,7 @@ def cmr_loss(
     total_stats = x.new_zeros(len(STAT_NAMES))
     for start in range(0, m, config.block_size):
         block = slice(start, start + config.block_size)
-        args = (field, x[block], times[block], index[block], config.density, config.stress, time_scale)
+        args = (field, x[block], times[block], index[block], config.density, time_axis.physics_per_dataset)
         if config.checkpoint_blocks and torch.is_grad_enabled():
             sq, stats = checkpoint(_block_terms, *args, use_reentrant=False)
         else:

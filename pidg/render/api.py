@@ -5,40 +5,22 @@ composited with the same weights as colour in the same pass (later: Gaussian flo
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from torch import Tensor
 
 from pidg.render.camera import Camera
+from pidg.render.output import RenderOutput
 from pidg.render.projection import project_gaussians
+from pidg.render.rasterize_cpu import composite_cpu
+from pidg.render.rasterize_gsplat import rasterize_gsplat
+from pidg.render.rasterize_torch import composite_reference
 from pidg.render.sh import sh_to_rgb
 
-Backend = Literal["auto", "cpu", "torch", "gsplat"]
+#: Which compositor renders: "cpu" (numba kernel), "torch" (reference), "gsplat" (CUDA), "auto" (by device).
+RenderBackend = Literal["auto", "cpu", "torch", "gsplat"]
 TILE_SIZE = 16
-
-
-@dataclass
-class RenderOutput:
-    """Images [H, W, ...] and the per-Gaussian projection results densification needs."""
-
-    rgb: Tensor  # [H, W, 3], background included
-    alpha: Tensor  # [H, W] accumulated opacity
-    depth: Tensor  # [H, W] alpha-composited camera depth, sum_i w_i z_i (0 where nothing is drawn)
-    features: Tensor | None  # [H, W, C] extra channels composited with the same weights (no background)
-    means2d: Tensor  # [N, 2] pixel coordinates; its .grad after backward is the view-space positional gradient
-    radii: Tensor  # [N, 2] int32 pixel half-extents, 0 for culled Gaussians
-    depths: Tensor  # [N] camera-space z of the centres
-
-    @property
-    def visible(self) -> Tensor:
-        """[N] bool: Gaussians that touch the image."""
-        return (self.radii > 0).all(dim=-1)
-
-    def depth_normalized(self, eps: float = 1e-6) -> Tensor:
-        """Expected depth given that something was hit: depth / alpha (0 where alpha < eps)."""
-        return torch.where(self.alpha > eps, self.depth / self.alpha.clamp_min(eps), torch.zeros_like(self.depth))
 
 
 def _check_inputs(
@@ -90,7 +72,7 @@ def _check_inputs(
         raise ValueError(f"rasterize: background must be a finite RGB tensor of shape [3], got {list(background.shape)}")
 
 
-def resolve_backend(backend: Backend, device: torch.device) -> Literal["cpu", "torch", "gsplat"]:
+def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cpu", "torch", "gsplat"]:
     """Pick the backend: gsplat for CUDA tensors, the numba kernel on CPU, the torch reference on request."""
     if backend == "auto":
         return "gsplat" if device.type == "cuda" else "cpu"
@@ -98,8 +80,8 @@ def resolve_backend(backend: Backend, device: torch.device) -> Literal["cpu", "t
         raise ValueError(f"rasterize: backend '{backend}' runs on CPU tensors, got tensors on {device}")
     if backend == "gsplat" and device.type != "cuda":
         raise ValueError("rasterize: the gsplat backend needs CUDA tensors")
-    if backend not in ("cpu", "torch", "gsplat"):
-        raise ValueError(f"rasterize: unknown backend '{backend}' (auto, cpu, torch, gsplat)")
+    if backend not in get_args(RenderBackend):
+        raise ValueError(f"rasterize: unknown backend '{backend}' ({', '.join(get_args(RenderBackend))})")
     return backend
 
 
@@ -115,7 +97,7 @@ def rasterize(
     features: Tensor | None = None,
     background: Tensor | None = None,
     sh_degree: int | None = None,
-    backend: Backend = "auto",
+    backend: RenderBackend = "auto",
     tile_size: int = TILE_SIZE,
 ) -> RenderOutput:
     """Render N Gaussians into one camera.
@@ -144,8 +126,6 @@ def rasterize(
         rgb_per_gaussian = colors
 
     if which == "gsplat":
-        from pidg.render.rasterize_gsplat import rasterize_gsplat
-
         return rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
 
     proj = project_gaussians(means, quats, lin_scales, opacities, camera)
@@ -154,10 +134,7 @@ def rasterize(
     n_feat = 0 if features is None else features.shape[1]
     channels = [rgb_per_gaussian, proj.depths.unsqueeze(-1)] + ([features] if features is not None else [])
     per_gaussian = torch.cat(channels, dim=-1)  # [N, 3 + 1 + C]: colour, depth and features in one pass
-    if which == "cpu":
-        from pidg.render.rasterize_cpu import composite_cpu as composite
-    else:
-        from pidg.render.rasterize_torch import composite_reference as composite
+    composite = composite_cpu if which == "cpu" else composite_reference
     image, alpha = composite(
         proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size
     )

@@ -8,15 +8,11 @@ background-free exactly as on CPU. Same conventions as ours: OpenCV world-to-cam
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from torch import Tensor
 
 from pidg.render.camera import Camera
-
-if TYPE_CHECKING:
-    from pidg.render.api import RenderOutput
+from pidg.render.output import RenderOutput
 
 
 def gsplat_available() -> bool:
@@ -39,13 +35,12 @@ def rasterize_gsplat(
     camera: Camera,
     features: Tensor | None,
     background: Tensor,
-) -> "RenderOutput":
+) -> RenderOutput:
     """Render with gsplat on CUDA; outputs match ``rasterize`` on CPU (see module docstring)."""
     try:
         from gsplat import rasterization
     except ImportError as err:  # pragma: no cover - depends on the install
         raise ImportError("the gsplat backend needs `pip install gsplat` (CUDA only)") from err
-    from pidg.render.api import RenderOutput
 
     n_feat = 0 if features is None else features.shape[1]
     colors = rgb if features is None else torch.cat([rgb, features], dim=-1)

@@ -1,56 +1,144 @@
-"""The run configuration: one dataclass per concern, composed into ``TrainConfig`` (saved with every run)."""
+"""The run configuration: one dataclass per concern, composed into ``TrainConfig`` (saved with every run as
+``config.json``; every leaf field is a ``--section.field`` option whose help is the field's docstring)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
+import torch
+
+from pidg.config_tools import check_choices
 from pidg.data.scene import DataConfig
 from pidg.flow.config import FlowConfig
-from pidg.models.deformation import DeformationConfig
+from pidg.models.deformation import DeformationConfig, HashGridConfig
 from pidg.models.gaussians import GaussianModelConfig
+from pidg.models.material_field import MaterialFieldConfig
 from pidg.physics.config import PhysicsConfig
+from pidg.render import RenderBackend
 from pidg.training.densification import DensificationConfig
-from pidg.training.optim import GaussianOptimConfig
+
+
+@dataclass
+class GaussianOptimConfig:
+    """Adam learning rates of the Gaussians' parameters (3DGS defaults); positions scale with the scene extent."""
+
+    means_lr: float = 1.6e-4
+    """Initial position learning rate, times the scene extent (3DGS's spatial_lr_scale)."""
+    means_lr_final: float = 1.6e-6
+    """Final position learning rate, times the scene extent."""
+    means_lr_decay_steps: int = 0
+    """Steps of the log-linear decay from means_lr to means_lr_final (0: the run's iterations)."""
+    quats_lr: float = 1e-3
+    """Rotation (quaternion) learning rate."""
+    log_scales_lr: float = 5e-3
+    """Log-scale learning rate."""
+    opacity_lr: float = 5e-2
+    """Opacity-logit learning rate."""
+    sh_dc_lr: float = 2.5e-3
+    """Learning rate of the colour's SH DC term."""
+    sh_rest_lr: float = 2.5e-3 / 20.0
+    """Learning rate of the higher SH bands."""
+    betas: tuple[float, float] = (0.9, 0.999)
+    """Adam's beta1 beta2."""
+    eps: float = 1e-15
+    """Adam's epsilon (3DGS: tiny, so that the normalised step is not damped for small-gradient parameters)."""
 
 
 @dataclass
 class OptimConfig:
-    """Run length, loss weights and the deformation network's learning rates (Gaussians: GaussianOptimConfig)."""
+    """Run length, seed, loss weights and the learning rates of the deformation and material fields."""
 
     iterations: int = 20_000
+    """Training steps; learning-rate schedules span them unless their own length is set."""
     seed: int = 42
+    """Seed of every random choice of the run (initialisation, frame order, samples)."""
     lambda_dssim: float = 0.2
-    deformation_lr: float = 2e-3  # MLPs; hash grids get `grid_lr_factor` times this
-    grid_lr_factor: float = 10.0  # NOTES.md: hash grids 10-50x the MLP learning rate
-    deformation_lr_decay_every: int = 0  # x0.1 per this many steps, applied smoothly (exponential); 0: the run's iterations
-    static_warmup: int = 0  # steps that train the canonical Gaussians only, before deformation starts
-    time_budget_minutes: float | None = None  # stop early (with a checkpoint) when training time runs out
-    dynamic_vote: float = 0.4  # decoupling: dynamic if inside the motion mask in > this share of visible views
+    """lambda_c: weight of D-SSIM against L1 in the photometric loss (3DGS, paper: 0.2)."""
+    deformation_lr: float = 2e-3
+    """Learning rate of the deformation field's networks (paper: 2e-3); hash grids get grid_lr_factor times it."""
+    grid_lr_factor: float = 10.0
+    """Hash grids' learning rate over the networks' (NOTES.md: 10-50x)."""
+    deformation_lr_decay_every: int = 0
+    """Network and field learning rates fall x0.1 per this many steps, applied smoothly (0: the run's iterations)."""
+    material_lr: float = 2e-3
+    """Learning rate of the material field's MLP trunk and heads (paper: 2e-3)."""
+    material_grid_lr_factor: float = 10.0
+    """The material field's planes get material_lr times this (paper: 10-50x)."""
+    # Each embedding row only gets a gradient when its particle is sampled (about M / N of the steps), so it gets a
+    # larger step than the shared weights.
+    material_embedding_lr: float = 1e-2
+    """Learning rate of the material field's particle-index embedding."""
+    static_warmup: int = 0
+    """Steps that train the canonical Gaussians only, before the deformation starts."""
+    time_budget_minutes: float | None = None
+    """Stop early (with a checkpoint) when this much training time has passed; none: no budget."""
+    dynamic_vote: float = 0.4
+    """Static/dynamic decoupling: a Gaussian is dynamic if inside the motion mask in more than this share of the
+    training views that see it."""
 
 
 @dataclass
 class OutputConfig:
+    """Where a run writes, and how often."""
+
     dir: Path = Path("outputs/run")
+    """The run folder: config.json, checkpoint.pt, tensorboard/, train_summary.json."""
     checkpoint_every: int = 1000
-    log_every: int = 25  # TensorBoard scalars
-    preview_every: int = 1000  # TensorBoard image previews (a training view)
-    progress: bool = True  # tqdm bar
+    """Steps between checkpoints (0: only at the end); a checkpoint is always written when training stops."""
+    log_every: int = 25
+    """Steps between logged scalars (TensorBoard, history)."""
+    preview_every: int = 1000
+    """Steps between TensorBoard image previews of a training view (0: none)."""
+    progress: bool = True
+    """Show a tqdm progress bar."""
 
 
 @dataclass
 class TrainConfig:
-    data: DataConfig = field(default_factory=lambda: DataConfig(path=""))
-    gaussians: GaussianModelConfig = field(default_factory=GaussianModelConfig)
-    gaussian_optim: GaussianOptimConfig = field(default_factory=GaussianOptimConfig)
-    densify: DensificationConfig = field(default_factory=DensificationConfig)
-    deformation: DeformationConfig = field(default_factory=DeformationConfig)
-    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
-    flow: FlowConfig = field(default_factory=FlowConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    output: OutputConfig = field(default_factory=OutputConfig)
-    backend: Literal["auto", "cpu", "torch", "gsplat"] = "auto"
+    """Everything a run depends on."""
 
+    data: DataConfig = field(default_factory=lambda: DataConfig(path=""))
+    """The dataset."""
+    gaussians: GaussianModelConfig = field(default_factory=GaussianModelConfig)
+    """Initialisation of the canonical Gaussians."""
+    gaussian_optim: GaussianOptimConfig = field(default_factory=GaussianOptimConfig)
+    """Learning rates of the Gaussians."""
+    densify: DensificationConfig = field(default_factory=DensificationConfig)
+    """Adaptive density control."""
+    deformation: DeformationConfig = field(default_factory=DeformationConfig)
+    """The deformation field."""
+    material: MaterialFieldConfig = field(default_factory=MaterialFieldConfig)
+    """The material field (built when physics or flow needs it)."""
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    """The momentum-residual loss."""
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    """The flow-matching loss and its optical flow."""
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    """Run length, loss weights, network learning rates."""
+    output: OutputConfig = field(default_factory=OutputConfig)
+    """The run folder."""
+    backend: RenderBackend = "auto"
+    """Rasterizer: cpu (numba kernel), torch (reference), gsplat (CUDA), auto (by the tensors' device)."""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
+
+    @property
+    def needs_material_field(self) -> bool:
+        """The momentum residual and the flow loss both need velocities."""
+        return self.physics.enabled or self.flow.enabled
+
+
+#: The paper's ablation rows (and two more), each a set of option overrides on one base config: rows differ
+#: only by these options.
+ABLATION_VARIANTS: dict[str, dict[str, str]] = {
+    "base": {"physics.kind": "none", "flow.kind": "none"},  # PIDG w/o (CMR + LPFM)
+    "cmr": {"physics.kind": "cmr", "flow.kind": "none"},  # PIDG w/o LPFM
+    "full": {"physics.kind": "cmr", "flow.kind": "lpfm"},  # PIDG
+    "nostress": {"physics.kind": "cmr", "material.stress": "false", "flow.kind": "none"},  # sigma == 0 ablation
+    "lpfm": {"physics.kind": "none", "flow.kind": "lpfm"},  # flow matching without the momentum residual
+}
 
 Preset = Literal["auto", "paper", "cpu"]
 
@@ -64,10 +152,6 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto") -> TrainConfig:
     were the largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
     "auto" picks "paper" when CUDA is available and "cpu" otherwise. Explicit overrides are applied after this.
     """
-    import torch
-
-    from pidg.models.deformation import HashGridConfig
-
     if preset == "auto":
         preset = "paper" if torch.cuda.is_available() else "cpu"
     if preset == "paper":

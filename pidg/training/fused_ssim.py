@@ -1,6 +1,6 @@
 """Training SSIM (3DGS zero-padded form): numba kernels for the value and its analytic gradient.
 
-Why: at 400x400 the autograd SSIM of ``pidg.evaluation.metrics`` (depthwise ``conv2d`` on 15 maps, then its
+Why: at 400x400 the autograd SSIM of ``pidg.metrics`` (depthwise ``conv2d`` on 15 maps, then its
 backward) was the largest single item of a CPU training step. SSIM only needs separable Gaussian blurs, and its
 gradient w.r.t. the prediction is three more blurs of closed-form maps:
 
@@ -14,7 +14,7 @@ the three derivative maps row by row; the backward blurs those and combines them
 with torch ops around a blur kernel cost as much again as the blurs: ~25 full-image temporaries per step.)
 Work is split into bands of rows per channel, so both threads stay busy on 3-channel images.
 
-``pidg.evaluation.metrics.ssim(..., padding="zeros")`` is the readable autograd reference the tests compare with.
+``pidg.metrics.ssim(..., padding="zeros")`` is the readable autograd reference the tests compare with.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from pidg.evaluation.metrics import SSIM_K, SSIM_WIN_SIGMA, SSIM_WIN_SIZE
+from pidg.metrics import SSIM_K, SSIM_WIN_SIGMA, SSIM_WIN_SIZE
 
 _BAND = 16  # rows per parallel task
 

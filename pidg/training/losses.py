@@ -1,10 +1,35 @@
-"""Training losses. Photometric: (1 - lambda_c) L1 + lambda_c D-SSIM (3DGS), with the 3DGS zero-padded SSIM."""
+"""The training loss as a sum of small terms, each saying when it is active and owning its own state.
+
+A term sees one :class:`StepInputs` (the frame, the scene model and the Gaussians at the frame's time) and may ask
+for extra per-Gaussian channels in the step's render (the flow term renders its Gaussian and velocity flows in the
+same pass as the image). The trainer sums the active terms' losses in their order; each returns its weighted loss
+and the scalars it logs. A term with state (the flow term's target cache, the physics term's sampler) saves it in
+checkpoints through ``state_dict``. Adding a term means writing one class here and listing it in
+:func:`build_loss_terms`.
+
+Terms, in the order they are summed (NOTES.md section 9):
+  photometric     (1 - lambda_c) L1 + lambda_c D-SSIM, with the 3DGS zero-padded SSIM
+  smoothness      the deformation's own regulariser (Grid4D), on the frame-t pass
+  cmr             lambda_cmr * L_CMR at the deformed positions (``--physics cmr``)
+  lpfm            lambda_lpfm * L_LPFM of the rendered flows against the motion-flow target (``--flow lpfm``)
+"""
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from pidg.evaluation.metrics import ssim
+from pidg.data.scene import Frame
+from pidg.flow import FlowCache, FlowConfig, FlowPair, FlowTarget, decode_flows, flow_channels, flow_target_for_pair, lpfm_loss
+from pidg.flow.model_flow import rendered_depth
+from pidg.metrics import ssim
+from pidg.models.deformation import DeformedGaussians
+from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.physics import PhysicsConfig, cmr_loss
+from pidg.render import RenderOutput
+from pidg.training.config import TrainConfig
 from pidg.training.fused_ssim import fused_ssim
 
 
@@ -21,6 +46,185 @@ def photometric_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2) -> tup
         d_ssim = 1.0 - value
         total = (1.0 - lambda_dssim) * l1 + lambda_dssim * d_ssim
     else:
-        d_ssim = torch.zeros((), dtype=pred.dtype)
+        d_ssim = torch.zeros((), dtype=pred.dtype, device=pred.device)
         total = l1
     return total, {"l1": float(l1.detach()), "dssim": float(d_ssim.detach())}
+
+
+@dataclass
+class StepInputs:
+    """What one training step gives every loss term."""
+
+    step: int
+    frame: Frame
+    model: DynamicGaussians
+    state: DeformedGaussians  # the Gaussians at frame.time (canonical during a static warm-up)
+    deforming: bool  # whether the deformation ran (after the static warm-up)
+
+
+class LossTerm:
+    """One term of the training loss. Subclasses set ``name`` and ``phase`` (the step timer's phase its work counts
+    to) and implement :meth:`loss`; the other hooks have neutral defaults."""
+
+    name = "term"
+    phase = "loss"
+
+    def active(self, step: int) -> bool:
+        """Whether the term takes part in this step."""
+        return True
+
+    def render_features(self, inputs: StepInputs) -> Tensor | None:
+        """Extra per-Gaussian channels [N, C] the term needs composited in the step's render (None: none)."""
+        return None
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        """The weighted loss and the scalars to log; ``features`` is the term's own slice of ``render.features``."""
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        pass
+
+
+class PhotometricLoss(LossTerm):
+    """(1 - lambda_c) L1 + lambda_c D-SSIM of the render against the frame (3DGS)."""
+
+    name = "photometric"
+
+    def __init__(self, lambda_dssim: float) -> None:
+        self.lambda_dssim = lambda_dssim
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        return photometric_loss(render.rgb, inputs.frame.image, self.lambda_dssim)
+
+
+class DeformationSmoothness(LossTerm):
+    """The deformation field's own regulariser (Grid4D's smoothness term), from the frame-t pass; active once the
+    deformation runs (after ``start`` steps of static warm-up)."""
+
+    name = "smoothness"
+
+    def __init__(self, start: int = 0) -> None:
+        self.start = start
+
+    def active(self, step: int) -> bool:
+        return step >= self.start
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        reg = inputs.state.regularization
+        reg = reg if reg is not None else render.rgb.new_zeros(())
+        return reg, {"deform_reg": float(reg.detach())}
+
+
+class MomentumResidualLoss(LossTerm):
+    """lambda_cmr * L_CMR on a random subset of the Gaussians at their deformed positions (``--physics cmr``)."""
+
+    name = "cmr"
+    phase = "physics"
+
+    def __init__(self, config: PhysicsConfig, seed: int) -> None:
+        self.config = config
+        self.generator = torch.Generator().manual_seed(seed)  # the particle subsets (CPU), saved in checkpoints
+
+    def active(self, step: int) -> bool:
+        return self.config.active(step)
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        model = inputs.model
+        if model.material_field is None:
+            raise RuntimeError("the momentum residual needs a material field: build the model with one")
+        cmr = cmr_loss(
+            model.material_field, inputs.state.means, inputs.frame.time, model.gaussians.particle_index, self.config,
+            model.time_axis, self.generator,
+        )
+        return self.config.lambda_cmr * cmr.loss, {"cmr": float(cmr.loss.detach()), **{f"cmr_{k}": float(v) for k, v in cmr.stats.items()}}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.generator.set_state(state["generator"])
+
+
+@dataclass
+class _CachedTarget:
+    """A pair's flow_gt, the step it was built at, and frame t+1's rendered depth (None: the dataset's depth map)."""
+
+    step: int
+    depth: Tensor | None
+    target: FlowTarget | None
+
+
+class FlowMatchingLoss(LossTerm):
+    """lambda_lpfm * L_LPFM (``--flow lpfm``): the Gaussian and velocity flows of frame t, rendered as extra channels
+    of the step's render, against the pair's motion-flow target.
+
+    The target needs frame t+1's depth: the dataset's depth map when it has one, otherwise the model's own (a
+    no-grad render at t+1 in camera t+1). That rendered depth is reused while younger than
+    ``FlowConfig.target_refresh_steps`` and goes into checkpoints, so a resumed run builds the same targets as an
+    uninterrupted one. Steps whose frame starts no flow pair (the last frame) have no flow term."""
+
+    name = "lpfm"
+    phase = "flow"
+
+    def __init__(self, config: FlowConfig, cache: FlowCache) -> None:
+        self.config = config
+        self.cache = cache
+        self._targets: dict[str, _CachedTarget] = {}  # pair's first frame name -> flow_gt and what it came from
+        self._pending: tuple[FlowPair, DeformedGaussians] | None = None  # this step's pair and Gaussians at t+1
+
+    def active(self, step: int) -> bool:
+        return self.config.active(step)
+
+    def render_features(self, inputs: StepInputs) -> Tensor | None:
+        self._pending = None
+        pair = self.cache.pair_starting_at(inputs.frame)
+        if pair is None:
+            return None
+        model = inputs.model
+        next_state = model.at(pair.frame1.time) if inputs.deforming else model.canonical()
+        self._pending = (pair, next_state)
+        return flow_channels(model, inputs.frame.camera, inputs.state, next_state, inputs.frame.time, pair.dt)
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        if self._pending is None or features is None:
+            return render.rgb.new_zeros(()), {}
+        pair, next_state = self._pending
+        self._pending = None
+        target = self.target(inputs.model, pair, next_state, inputs.step)
+        flow_g, flow_v, _ = decode_flows(features, render.alpha)
+        result = lpfm_loss(flow_g, flow_v, target, render.alpha, self.config)
+        return self.config.lambda_lpfm * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}
+
+    def target(self, model: DynamicGaussians, pair: FlowPair, state_t1: DeformedGaussians, step: int) -> FlowTarget:
+        """The pair's flow_gt, rebuilt when its cached depth is ``target_refresh_steps`` old."""
+        cached = self._targets.get(pair.frame0.name)
+        if cached is not None and step - cached.step < self.config.target_refresh_steps:
+            if cached.target is None:  # restored from a checkpoint: rebuild from the saved depth
+                cached.target = flow_target_for_pair(pair, cached.depth if cached.depth is not None else pair.frame1.depth, self.config)
+            return cached.target
+        depth = None if pair.frame1.depth is not None else rendered_depth(model, state_t1, pair.frame1.camera)
+        target = flow_target_for_pair(pair, depth if depth is not None else pair.frame1.depth, self.config)
+        self._targets[pair.frame0.name] = _CachedTarget(step, depth, target)
+        return target
+
+    def state_dict(self) -> dict[str, Any]:
+        # the rendered depths behind cached flow targets (the targets are rebuilt from them on resume)
+        return {"depths": {k: (c.step, c.depth) for k, c in self._targets.items()}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._targets = {k: _CachedTarget(step, depth, None) for k, (step, depth) in state["depths"].items()}
+
+
+def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[LossTerm]:
+    """The terms a run config asks for, in summation order."""
+    terms: list[LossTerm] = [PhotometricLoss(config.optim.lambda_dssim), DeformationSmoothness(config.optim.static_warmup)]
+    if config.physics.enabled:
+        terms.append(MomentumResidualLoss(config.physics, config.optim.seed + 1))
+    if config.flow.enabled:
+        if flow_cache is None:
+            raise ValueError("the flow loss needs the scene's optical flow (a FlowCache)")
+        terms.append(FlowMatchingLoss(config.flow, flow_cache))
+    return terms

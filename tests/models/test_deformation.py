@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from pidg.config_tools import from_jsonable, to_jsonable
 from pidg.models.deformation import (
     GROUP_GRID,
     GROUP_MLP,
@@ -70,11 +71,12 @@ def test_shapes_and_interface(kind):
     model = build_deformation(CONFIGS[kind], BOUNDS)
     randomize_heads(model)
     means, quats, log_scales = canonical(50)
-    out = model(means, quats, log_scales, torch.full((50,), 0.5))
+    out = model(means, quats, log_scales, torch.full((50,), 0.5), regularize=True)
     assert out.means.shape == (50, 3) and out.quats.shape == (50, 4) and out.log_scales.shape == (50, 3)
     assert out.means.dtype == torch.float32
-    reg = model.regularization_loss()
-    assert reg.dim() == 0 and torch.isfinite(reg)
+    reg = out.regularization
+    assert (reg is not None) == (kind == "grid4d")  # only Grid4D has a regulariser
+    assert reg is None or (reg.dim() == 0 and torch.isfinite(reg))
     groups = model.parameter_groups()
     assert set(groups) <= {GROUP_GRID, GROUP_MLP}
     listed = [id(p) for ps in groups.values() for p in ps]
@@ -113,9 +115,9 @@ def test_gradients_reach_every_parameter(kind):
     target = torch.randn(len(means), 3)
 
     def step_loss(regularize: bool = True):
-        out = model(means, quats, log_scales, 0.3)
+        out = model(means, quats, log_scales, 0.3, regularize=regularize)
         loss = (out.means * target).sum() + out.quats.square().sum() + out.log_scales.sum()
-        return loss + model.regularization_loss() if regularize else loss
+        return loss + out.regularization if out.regularization is not None else loss
 
     # zero-initialised heads: the first backward of a rendering-type loss reaches only them ...
     step_loss(regularize=False).backward()
@@ -188,8 +190,7 @@ def test_grid4d_regularizer_equals_its_formula_on_separately_encoded_points():
             grid.table.copy_(torch.randn(grid.table.shape))
     means, quats, log_scales = canonical(200)
     torch.manual_seed(5)
-    model(means, quats, log_scales, 0.3)
-    loss = model.regularization_loss()
+    loss = model(means, quats, log_scales, 0.3, regularize=True).regularization
 
     torch.manual_seed(5)
     u_xyz, u_t = model.grid_coordinates(means, torch.full((200,), 0.3))
@@ -211,20 +212,22 @@ def test_grid4d_regularizer():
     with torch.no_grad():
         for grid in (model.grid_xyz, model.grid_xyt, model.grid_yzt, model.grid_xzt):
             grid.table.fill_(0.7)  # a constant field: perturbing the coordinates changes nothing
-    model(means, quats, log_scales, 0.4)
-    assert float(model.regularization_loss().detach()) < 1e-12  # zero up to float32 rounding of the weights
+    out = model(means, quats, log_scales, 0.4, regularize=True)
+    assert float(out.regularization.detach()) < 1e-12  # zero up to float32 rounding of the weights
     with torch.no_grad():
         for grid in (model.grid_xyz, model.grid_xyt, model.grid_yzt, model.grid_xzt):
             grid.table.copy_(torch.randn(grid.table.shape))
-    model(means, quats, log_scales, 0.4)
-    loss = model.regularization_loss()
+    loss = model(means, quats, log_scales, 0.4, regularize=True).regularization
     assert float(loss.detach()) > 0
     loss.backward()
     assert model.grid_xyz.table.grad.abs().max() > 0 and model.grid_xzt.table.grad.abs().max() > 0
-    assert float(model.regularization_loss()) == 0.0  # the sample was consumed
-    model.eval()
-    model(means, quats, log_scales, 0.4)
-    assert float(model.regularization_loss()) == 0.0  # nothing is sampled outside training
+    # a pass that does not ask for it neither samples nor returns one (e.g. t+1 for the flow loss, rendering)
+    rng = torch.get_rng_state()
+    assert model(means, quats, log_scales, 0.4).regularization is None
+    assert torch.equal(torch.get_rng_state(), rng)
+    static = torch.zeros(len(means), dtype=torch.bool)
+    static[::2] = True  # with a static mask, the term covers the deformed rows
+    assert model(means, quats, log_scales, 0.4, static_mask=static, regularize=True).regularization is not None
 
 
 def test_grid4d_attention_cache_at_render_time():
@@ -264,12 +267,16 @@ def test_run_config_selects_the_model_and_round_trips():
     config = DeformationConfig(kind="mlp", grid4d=SMALL_GRID4D, mlp=SMALL_MLP)
     assert isinstance(build_deformation(config, BOUNDS), MLPDeformation)
     assert isinstance(build_deformation(dataclasses.replace(config, kind="identity")), IdentityDeformation)
-    restored = DeformationConfig.from_dict(json.loads(json.dumps(dataclasses.asdict(config))))
+    restored = from_jsonable(DeformationConfig, json.loads(json.dumps(to_jsonable(config))))
     assert restored == config
     with pytest.raises(ValueError):
         DeformationConfig(kind="nope")  # type: ignore[arg-type]
     with pytest.raises(ValueError):
-        DeformationConfig.from_dict({"kind": "mlp", "depth": 3})
+        from_jsonable(DeformationConfig, {"kind": "mlp", "depth": 3})
+    for kind in ("grid4d", "mlp", "identity"):  # the config that builds a model like a given one
+        model = build_deformation(dataclasses.replace(config, kind=kind), BOUNDS)
+        assert type(build_deformation(DeformationConfig.of(model))) is type(model)
+    assert DeformationConfig.of(build_deformation(config, BOUNDS)).mlp == SMALL_MLP
 
 
 def test_bounds_from_what_the_trainer_has():

@@ -4,19 +4,19 @@ import pytest
 import torch
 from torch import Tensor
 
+from pidg.models.jet import FieldJet, jet_from_function, stress_matrix
+from pidg.models.time_axis import TimeAxis
 from pidg.physics import (
     STAT_NAMES,
-    FieldJet,
     cmr_loss,
     convective_acceleration,
-    jet_from_function,
     momentum_residual,
     sample_rows,
     stress_divergence,
-    stress_matrix,
 )
 
 F64 = torch.float64
+UNIT = TimeAxis(physics_per_dataset=1.0, frame_interval=1.0)  # physics time = dataset time
 
 
 def _points(m: int = 16, seed: int = 0) -> tuple[Tensor, Tensor]:
@@ -122,7 +122,7 @@ def test_blocks_give_the_full_loss_when_all_particles_fit(tiny_field, tiny_confi
     field = tiny_field()
     x, t, index = random_inputs(30)
     config = tiny_config(samples=100, block_size=7, density=1.3)
-    result = cmr_loss(field, x, t, index, config, torch.Generator().manual_seed(0))
+    result = cmr_loss(field, x, t, index, config, UNIT, torch.Generator().manual_seed(0))
     torch.testing.assert_close(result.loss, _full_loss(field, x, t, index, 1.3), atol=1e-13, rtol=1e-12)
     assert result.num_samples == 30 and set(result.stats) == set(STAT_NAMES)
     r = momentum_residual(field.jet(x, t, index), 1.3)
@@ -138,7 +138,7 @@ def test_time_scale_divides_the_time_derivative(tiny_field, tiny_config, random_
     config = tiny_config(samples=100, block_size=100)
     jet = field.jet(x, t, index)
     expected = momentum_residual(replace(jet, dv_dt=jet.dv_dt / 4.0)).square().sum(dim=1).mean()
-    result = cmr_loss(field, x, t, index, config, torch.Generator().manual_seed(0), time_scale=4.0)
+    result = cmr_loss(field, x, t, index, config, TimeAxis(physics_per_dataset=4.0, frame_interval=0.25), torch.Generator().manual_seed(0))
     torch.testing.assert_close(result.loss, expected, atol=1e-13, rtol=1e-12)
     assert not torch.allclose(result.loss, _full_loss(field, x, t, index))
 
@@ -147,14 +147,14 @@ def test_subset_is_seeded_and_independent_of_the_block_size(tiny_field, tiny_con
     field = tiny_field()
     x, t, index = random_inputs(200)
     losses = [
-        cmr_loss(field, x, t, index, tiny_config(samples=50, block_size=b), torch.Generator().manual_seed(3)).loss
+        cmr_loss(field, x, t, index, tiny_config(samples=50, block_size=b), UNIT, torch.Generator().manual_seed(3)).loss
         for b in (50, 7, 1000)
     ]
     rows = sample_rows(200, 50, torch.Generator().manual_seed(3))
     expected = _full_loss(field, x[rows], t[rows], index[rows])
     for loss in losses:
         torch.testing.assert_close(loss, expected, atol=1e-13, rtol=1e-12)
-    other = cmr_loss(field, x, t, index, tiny_config(samples=50), torch.Generator().manual_seed(4)).loss
+    other = cmr_loss(field, x, t, index, tiny_config(samples=50), UNIT, torch.Generator().manual_seed(4)).loss
     assert other != losses[0]
 
 
@@ -174,7 +174,7 @@ def test_only_the_sampled_rows_go_through_the_network(tiny_field, tiny_config, n
     counter = _RowCounter(tiny_field())
     x = torch.rand(n, 3, dtype=F64)
     config = tiny_config(samples=64, block_size=16)
-    cmr_loss(counter, x, 0.5, torch.arange(n) % 11, config, torch.Generator().manual_seed(0))
+    cmr_loss(counter, x, 0.5, torch.arange(n) % 11, config, UNIT, torch.Generator().manual_seed(0))
     assert sum(counter.calls) == min(n, 64)
     assert max(counter.calls) <= 16
 
@@ -186,7 +186,7 @@ def test_checkpointed_blocks_match_stored_blocks(tiny_field, tiny_config, random
     for ckpt in (False, True):
         leaf = x.clone().requires_grad_(True)
         config = tiny_config(samples=30, block_size=8, checkpoint_blocks=ckpt)
-        loss = cmr_loss(field, leaf, t, index, config, torch.Generator().manual_seed(1)).loss
+        loss = cmr_loss(field, leaf, t, index, config, UNIT, torch.Generator().manual_seed(1)).loss
         grads = torch.autograd.grad(loss, [leaf, field.trunk[1].weight, field.spatial_planes])
         results.append((loss, grads))
     torch.testing.assert_close(results[0][0], results[1][0])
@@ -199,7 +199,7 @@ def test_detach_positions_stops_gradients_into_the_deformation(tiny_field, tiny_
     x, t, index = random_inputs(12)
     for detach in (False, True):
         leaf = x.clone().requires_grad_(True)
-        loss = cmr_loss(field, leaf, t, index, tiny_config(detach_positions=detach)).loss
+        loss = cmr_loss(field, leaf, t, index, tiny_config(detach_positions=detach), UNIT).loss
         loss.backward()
         assert (leaf.grad is None) == detach
         assert field.trunk[0].weight.grad is not None
@@ -208,7 +208,7 @@ def test_detach_positions_stops_gradients_into_the_deformation(tiny_field, tiny_
 def test_no_stress_mode_ignores_the_stress(tiny_field, tiny_config, random_inputs):
     x, t, index = random_inputs(20)
     with_head = tiny_field(stress=False)
-    result = cmr_loss(with_head, x, t, index, tiny_config(stress=False))
+    result = cmr_loss(with_head, x, t, index, tiny_config(), UNIT)
     assert result.stats["stress"] == 0 and result.stats["stress_divergence"] == 0
     jet = tiny_field().jet(x, t, index)  # random stress head
     inertia_only = momentum_residual(jet, stress=False)
@@ -223,7 +223,7 @@ def test_loss_gradients_match_finite_differences(tiny_field, tiny_config, random
     x = x.requires_grad_(True)
 
     def loss() -> Tensor:
-        return cmr_loss(field, x, t, index, config).loss
+        return cmr_loss(field, x, t, index, config, UNIT).loss
 
     loss().backward()
     h = 1e-6
@@ -253,14 +253,14 @@ def test_loss_rejects_bad_input(tiny_field, tiny_config):
     field, config = tiny_field(), tiny_config(samples=4)
     idx = torch.zeros(10, dtype=torch.long)
     with pytest.raises(ValueError, match=r"positions must be \[N, 3\]"):
-        cmr_loss(field, torch.zeros(10, 2, dtype=F64), 0.5, idx, config)
+        cmr_loss(field, torch.zeros(10, 2, dtype=F64), 0.5, idx, config, UNIT)
     with pytest.raises(ValueError, match=r"index must be \[N\]"):
-        cmr_loss(field, torch.zeros(10, 3, dtype=F64), 0.5, idx[:9], config)
+        cmr_loss(field, torch.zeros(10, 3, dtype=F64), 0.5, idx[:9], config, UNIT)
     with pytest.raises(ValueError, match="no particles"):
-        cmr_loss(field, torch.zeros(0, 3, dtype=F64), 0.5, idx[:0], config)
+        cmr_loss(field, torch.zeros(0, 3, dtype=F64), 0.5, idx[:0], config, UNIT)
     bad = torch.zeros(10, 3, dtype=F64)
     bad[7, 1] = float("nan")  # caught even when row 7 is not among the sampled ones
     with pytest.raises(ValueError, match="non-finite positions"):
-        cmr_loss(field, bad, 0.5, idx, config)
+        cmr_loss(field, bad, 0.5, idx, config, UNIT)
     with pytest.raises(IndexError, match="out of range"):
-        cmr_loss(field, torch.zeros(10, 3, dtype=F64), 0.5, idx + 11, dataclasses.replace(config, samples=100))
+        cmr_loss(field, torch.zeros(10, 3, dtype=F64), 0.5, idx + 11, dataclasses.replace(config, samples=100), UNIT)

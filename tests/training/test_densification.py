@@ -11,8 +11,9 @@ from pidg.render import rasterize
 from pidg.render.api import RenderOutput
 from pidg.render.projection import quat_to_rotmat
 from pidg.render.scenes import orbit_camera
-from pidg.training.densification import DensificationConfig, DensificationStrategy
-from pidg.training.optim import GaussianOptimConfig, make_gaussian_optimizers, means_lr_at
+from pidg.training.config import GaussianOptimConfig
+from pidg.training.densification import DensificationConfig, DensificationStrategy, clone, prune, split
+from pidg.training.optim import make_gaussian_optimizers, means_lr_at
 
 
 def make_model(n: int = 6, seed: int = 0, scale: float = 0.05, opacity: float = 0.5) -> GaussianModel:
@@ -63,20 +64,26 @@ def check_optimizer_consistency(model: GaussianModel, optimizers) -> None:
     assert all(b.shape[0] == len(model) for b in model.buffers.values())
 
 
+def strategy_and_state(model: GaussianModel, scene_extent: float = 1.0, config: DensificationConfig | None = None):
+    """A (stateless) strategy and the explicit state it works on, for ``model``'s Gaussians."""
+    strategy = DensificationStrategy(config, scene_extent)
+    return strategy, strategy.initialize_state(len(model))
+
+
 @pytest.fixture
 def setup():
     model = make_model()
     opts = make_gaussian_optimizers(model, scene_extent=1.0)
     adam_step(model, opts)
-    strategy = DensificationStrategy(model, opts, scene_extent=1.0)
-    return model, opts, strategy
+    strategy, state = strategy_and_state(model)
+    return model, opts, strategy, state
 
 
 def test_clone_copies_rows_with_zero_adam_state(setup):
-    model, opts, strategy = setup
+    model, opts, strategy, state = setup
     before = {k: v.detach().clone() for k, v in model.params.items()}
     moments = {k: state_of(opts, model, k)["exp_avg"].clone() for k in model.params}
-    assert strategy.clone(torch.tensor([False, True, False, False, True, False])) == 2
+    assert clone(model, opts, state, torch.tensor([False, True, False, False, True, False])) == 2
     assert len(model) == 8
     assert model.particle_index.tolist() == [0, 1, 2, 3, 4, 5, 1, 4]
     check_optimizer_consistency(model, opts)
@@ -90,11 +97,11 @@ def test_clone_copies_rows_with_zero_adam_state(setup):
 
 
 def test_prune_removes_rows_and_their_state(setup):
-    model, opts, strategy = setup
+    model, opts, strategy, state = setup
     before = {k: v.detach().clone() for k, v in model.params.items()}
     moments = {k: state_of(opts, model, k)["exp_avg_sq"].clone() for k in model.params}
     mask = torch.tensor([True, False, False, True, False, False])
-    assert strategy.prune(mask) == 2
+    assert prune(model, opts, state, mask) == 2
     assert model.particle_index.tolist() == [1, 2, 4, 5]
     check_optimizer_consistency(model, opts)
     for k, p in model.params.items():
@@ -102,15 +109,15 @@ def test_prune_removes_rows_and_their_state(setup):
         assert torch.equal(state_of(opts, model, k)["exp_avg_sq"], moments[k][~mask])
     adam_step(model, opts, seed=3)
     with pytest.raises(ValueError, match="bool mask"):
-        strategy.prune(torch.tensor([0, 1]))
+        prune(model, opts, state, torch.tensor([0, 1]))
 
 
 def test_index_inheritance_through_clone_split_prune(setup):
-    model, opts, strategy = setup
+    model, opts, strategy, state = setup
     sh_before = model.params["sh_dc"].detach().clone()
-    strategy.clone(torch.tensor([False, True, False, False, True, False]))
-    strategy.split(torch.tensor([False, False, True, False, False, False, False, True]))  # row 7 = clone of 4
-    strategy.prune(model.particle_index == 0)
+    clone(model, opts, state, torch.tensor([False, True, False, False, True, False]))
+    split(model, opts, state, torch.tensor([False, False, True, False, False, False, False, True]))  # row 7 = clone of 4
+    prune(model, opts, state, model.particle_index == 0)
     idx = model.particle_index
     assert sorted(idx.tolist()) == [1, 1, 2, 2, 3, 4, 4, 4, 5]
     # every descendant carries its ancestor's colour (children copy all rows they do not resample)
@@ -138,8 +145,8 @@ def test_split_samples_children_from_the_parent_gaussian():
     with torch.no_grad():  # ... but the exact parents back
         for k, v in model.params.items():
             v.copy_(original[k])
-    strategy = DensificationStrategy(model, opts, 1.0, DensificationConfig(seed=123))
-    assert strategy.split(torch.ones(2 * m, dtype=torch.bool)) == 2 * m
+    _, state = strategy_and_state(model, 1.0, DensificationConfig(seed=123))
+    assert split(model, opts, state, torch.ones(2 * m, dtype=torch.bool)) == 2 * m
     assert len(model) == 4 * m
     check_optimizer_consistency(model, opts)
     for name in model.params:
@@ -160,13 +167,13 @@ def test_split_samples_children_from_the_parent_gaussian():
         torch.testing.assert_close(torch.cov(x.T), cov, rtol=0, atol=0.04 * float(cov.abs().max()))
     # a fixed seed gives the same children
     twin = GaussianModel.from_state_dict({**model.state_dict()})
-    first = DensificationStrategy(twin, {}, 1.0, DensificationConfig(seed=7))
+    _, first = strategy_and_state(twin, 1.0, DensificationConfig(seed=7))
     second_model = GaussianModel.from_state_dict(model.state_dict())
-    second = DensificationStrategy(second_model, {}, 1.0, DensificationConfig(seed=7))
+    _, second = strategy_and_state(second_model, 1.0, DensificationConfig(seed=7))
     mask = torch.zeros(4 * m, dtype=torch.bool)
     mask[:10] = True
-    first.split(mask)
-    second.split(mask)
+    split(twin, {}, first, mask)
+    split(second_model, {}, second, mask)
     assert torch.equal(twin.means, second_model.means)
 
 
@@ -177,7 +184,7 @@ def test_gradient_statistics_and_clone_vs_split_decision():
         model.params["log_scales"][:] = math.log(0.05)
         model.params["log_scales"][0] = math.log(0.005)
     opts = make_gaussian_optimizers(model)
-    strategy = DensificationStrategy(model, opts, 1.0)
+    strategy, state = strategy_and_state(model)
     width, height = 200, 100
     # NDC-equivalent gradient = pixel gradient * (W/2, H/2) = pixel gradient * (100, 50)
     grad = torch.tensor([
@@ -188,41 +195,41 @@ def test_gradient_statistics_and_clone_vs_split_decision():
         [3e-6, 0.0],  # 3e-4 in one view, 0 in the other: average 1.5e-4, nothing
     ])
     radii = torch.tensor([[3, 3], [4, 2], [5, 5], [0, 0], [2, 2]])
-    assert strategy.step_post_backward(550, fake_render(5, grad, radii, width, height)) is None  # not on schedule
+    assert strategy.step_post_backward(model, opts, state, 550, fake_render(5, grad, radii, width, height)) is None  # not on schedule
     second = grad.clone()
     second[4] = 0.0
     strategy.step_pre_backward(fake_render(5, second, radii, width, height))
-    report = strategy.step_post_backward(600, fake_render(5, second, radii, width, height))
+    report = strategy.step_post_backward(model, opts, state, 600, fake_render(5, second, radii, width, height))
     assert report is not None and (report.cloned, report.split, report.pruned) == (1, 1, 0)
     assert report.num_gaussians == 7 == len(model)
     assert model.particle_index.tolist() == [0, 2, 3, 4, 0, 1, 1]
     # statistics restart after a densification round
-    assert strategy.grad_accum.shape == (7,) and (strategy.count == 0).all() and (strategy.max_radii == 0).all()
+    assert state.grad_accum.shape == (7,) and (state.count == 0).all() and (state.max_radii == 0).all()
 
 
 def test_statistics_accumulate_over_views_and_radii():
     model = make_model(3)
-    strategy = DensificationStrategy(model, make_gaussian_optimizers(model), 1.0)
+    strategy, state = strategy_and_state(model)
     g = torch.tensor([[1e-6, 0.0], [0.0, 2e-6], [1.0, 1.0]])
     outs = [fake_render(3, g, torch.tensor([[3, 7], [2, 2], [0, 0]])), fake_render(3, g, torch.tensor([[9, 1], [0, 0], [0, 0]]))]
-    strategy.update_statistics(outs)
-    assert strategy.count.tolist() == [2, 1, 0]
-    torch.testing.assert_close(strategy.grad_accum, torch.tensor([2e-4, 1e-4, 0.0]))
-    assert strategy.max_radii.tolist() == [9.0, 2.0, 0.0]
-    strategy.update_statistics(outs[0], width=400, height=400)  # explicit size overrides the image's
-    torch.testing.assert_close(strategy.grad_accum, torch.tensor([4e-4, 5e-4, 0.0]))
+    strategy.update_statistics(model, state, outs)
+    assert state.count.tolist() == [2, 1, 0]
+    torch.testing.assert_close(state.grad_accum, torch.tensor([2e-4, 1e-4, 0.0]))
+    assert state.max_radii.tolist() == [9.0, 2.0, 0.0]
+    strategy.update_statistics(model, state, outs[0], width=400, height=400)  # explicit size overrides the image's
+    torch.testing.assert_close(state.grad_accum, torch.tensor([4e-4, 5e-4, 0.0]))
     with pytest.raises(ValueError, match="Gaussians"):
-        strategy.update_statistics(fake_render(2, g[:2], torch.zeros(2, 2)))
+        strategy.update_statistics(model, state, fake_render(2, g[:2], torch.zeros(2, 2)))
 
 
 def test_opacity_reset_clamps_and_zeroes_only_opacity_state(setup):
-    model, opts, strategy = setup
+    model, opts, strategy, state = setup
     with torch.no_grad():
         model.params["opacity_logits"][:] = torch.logit(torch.tensor([0.5, 0.006, 0.9, 0.011, 0.009, 0.2]))
     means_state = state_of(opts, model, "means")["exp_avg"].clone()
     param = model.params["opacity_logits"]
     # step 3000 is also a densification round; nothing qualifies for growth or pruning here
-    report = strategy.step_post_backward(3000, fake_render(6, torch.zeros(6, 2), torch.ones(6, 2)))
+    report = strategy.step_post_backward(model, opts, state, 3000, fake_render(6, torch.zeros(6, 2), torch.ones(6, 2)))
     assert report is not None and (report.cloned, report.split, report.pruned) == (0, 0, 0)
     assert model.params["opacity_logits"] is param  # reset in place: nothing else to re-wire
     torch.testing.assert_close(model.opacities, torch.tensor([0.01, 0.006, 0.01, 0.01, 0.009, 0.01]))
@@ -245,14 +252,14 @@ def test_pruning_rules(world_fraction):
         model.params["log_scales"][2, 1] = math.log(0.5)  # > 0.1 x extent (2 x 0.1 = 0.2)
         model.params["log_scales"][3, 2] = math.log(0.05)  # > 0.015 x extent (0.03) but < 0.2
     cfg = DensificationConfig(prune_world_scale=world_fraction)
-    strategy = DensificationStrategy(model, opts, scene_extent=2.0, config=cfg)
+    strategy, state = strategy_and_state(model, 2.0, cfg)
     radii = torch.tensor([[2, 2], [2, 2], [2, 2], [2, 2], [25, 3], [20, 20]])  # row 4 is too big on screen
     render = fake_render(n, torch.zeros(n, 2), radii)
-    strategy.update_statistics(render)
-    assert strategy.prune_mask(600).tolist() == [True, False, False, False, False, False]  # before the first reset
+    strategy.update_statistics(model, state, render)
+    assert strategy.prune_mask(model, state, 600).tolist() == [True, False, False, False, False, False]  # before the first reset
     expected = [True, False, True, world_fraction < 0.05, True, False]
-    assert strategy.prune_mask(3100).tolist() == expected
-    report = strategy.step_post_backward(3100, render)
+    assert strategy.prune_mask(model, state, 3100).tolist() == expected
+    report = strategy.step_post_backward(model, opts, state, 3100, render)
     assert report is not None and report.pruned == sum(expected)
     kept = [i for i in range(n) if not expected[i]]
     assert model.particle_index.tolist() == kept
@@ -261,15 +268,16 @@ def test_pruning_rules(world_fraction):
 
 def test_schedule_bounds():
     model = make_model(4, opacity=0.001)  # would all be pruned by any densification round
-    strategy = DensificationStrategy(model, make_gaussian_optimizers(model), 1.0)
+    strategy, state = strategy_and_state(model)
+    opts = make_gaussian_optimizers(model)
     render = fake_render(4, torch.zeros(4, 2), torch.ones(4, 2))
-    assert strategy.step_post_backward(500, render) is None  # start is exclusive
-    assert strategy.step_post_backward(15_000, render) is None  # stop is exclusive
-    assert strategy.count.tolist() == [1, 1, 1, 1]  # only step 500 gathered statistics
+    assert strategy.step_post_backward(model, opts, state, 500, render) is None  # start is exclusive
+    assert strategy.step_post_backward(model, opts, state, 15_000, render) is None  # stop is exclusive
+    assert state.count.tolist() == [1, 1, 1, 1]  # only step 500 gathered statistics
     assert len(model) == 4
 
 
-def test_extra_rows_follow_buffers_params_callbacks_and_single_optimizer():
+def test_extra_rows_follow_buffers_params_statistics_and_single_optimizer():
     model = make_model(4)
     model.add_buffer("dynamic", torch.tensor([True, False, True, False]))
     emb = model.add_param("embedding", torch.arange(8.0).reshape(4, 2))
@@ -278,25 +286,16 @@ def test_extra_rows_follow_buffers_params_callbacks_and_single_optimizer():
     for p in model.params.values():
         p.grad = torch.ones_like(p)
     opt.step()
-    external = torch.tensor([10, 11, 12, 13])
-    seen = []
-
-    def follow(source: torch.Tensor) -> None:
-        nonlocal external
-        external = external[source]
-        seen.append(source.tolist())
-
-    strategy = DensificationStrategy(model, opt, 1.0)
-    strategy.row_callbacks.append(follow)
-    strategy.clone(torch.tensor([False, False, True, False]))
-    strategy.split(torch.tensor([True, False, False, False, False]))
-    strategy.prune(torch.tensor([False, False, False, True, False, False]))
+    _, state = strategy_and_state(model)
+    state.grad_accum = torch.tensor([10.0, 11.0, 12.0, 13.0])
+    clone(model, opt, state, torch.tensor([False, False, True, False]))
+    split(model, opt, state, torch.tensor([True, False, False, False, False]))
+    prune(model, opt, state, torch.tensor([False, False, False, True, False, False]))
     assert model.particle_index.tolist() == [1, 2, 3, 0, 0]
     assert model.buffers["dynamic"].tolist() == [False, True, False, True, True]
     assert model.params["embedding"] is not emb
     assert model.params["embedding"].detach()[:, 0].tolist() == pytest.approx([2.0, 4.0, 6.0, 0.0, 0.0], abs=2e-3)
-    assert external.tolist() == [11, 12, 13, 10, 10]
-    assert seen == [[0, 1, 2, 3, 2], [1, 2, 3, 4, 0, 0], [0, 1, 2, 4, 5]]
+    assert state.grad_accum.tolist() == [11.0, 12.0, 13.0, 0.0, 0.0]  # survivors keep their statistics, children start at 0
     params_in_opt = [g["params"][0] for g in opt.param_groups]
     assert all(any(p is q for q in params_in_opt) for p in model.params.values())
     assert all(opt.state[p]["exp_avg"].shape == p.shape for p in model.params.values())
@@ -305,16 +304,20 @@ def test_extra_rows_follow_buffers_params_callbacks_and_single_optimizer():
     opt.step()
 
 
-def test_strategy_state_dict_round_trip():
+def test_state_dict_round_trip_and_resize():
     model = make_model(3)
-    strategy = DensificationStrategy(model, make_gaussian_optimizers(model), 1.0)
-    strategy.update_statistics(fake_render(3, torch.full((3, 2), 1e-5), torch.full((3, 2), 4)))
-    state = strategy.state_dict()
-    other = DensificationStrategy(model, make_gaussian_optimizers(model), 1.0)
-    other.load_state_dict(state)
-    assert torch.equal(other.grad_accum, strategy.grad_accum) and torch.equal(other.max_radii, strategy.max_radii)
-    assert torch.equal(other.count, strategy.count)
-    assert torch.equal(torch.randn(5, generator=other.generator), torch.randn(5, generator=strategy.generator))
+    strategy, state = strategy_and_state(model)
+    strategy.update_statistics(model, state, fake_render(3, torch.full((3, 2), 1e-5), torch.full((3, 2), 4)))
+    saved = state.state_dict()
+    other = strategy.initialize_state(3)
+    other.load_state_dict(saved)
+    assert torch.equal(other.grad_accum, state.grad_accum) and torch.equal(other.max_radii, state.max_radii)
+    assert torch.equal(other.count, state.count)
+    assert torch.equal(torch.randn(5, generator=other.generator), torch.randn(5, generator=state.generator))
+    # the strategy holds nothing of the model: statistics of another size restart when other Gaussians arrive
+    bigger = make_model(5)
+    strategy.update_statistics(bigger, state, fake_render(5, torch.full((5, 2), 1e-5), torch.full((5, 2), 4)))
+    assert state.count.tolist() == [1, 1, 1, 1, 1]
 
 
 def test_means_lr_schedule():
@@ -335,7 +338,7 @@ def test_end_to_end_render_backward_densify_render():
     # every 2 steps from step 1 on, tiny threshold so that many Gaussians grow; percent_dense splits the larger half
     median_scale = float(model.scales.detach().max(dim=-1).values.median())
     cfg = DensificationConfig(start=1, every=2, grad_threshold=1e-7, percent_dense=median_scale / 4.0)
-    strategy = DensificationStrategy(model, opts, scene_extent=4.0, config=cfg)
+    strategy, state = strategy_and_state(model, 4.0, cfg)
     camera = orbit_camera(40, 30, distance=3.0)
     target = torch.rand(30, 40, 3, generator=g)
     sizes = [len(model)]
@@ -348,7 +351,7 @@ def test_end_to_end_render_backward_densify_render():
         for opt in opts.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
-        report = strategy.step_post_backward(step, out, camera.width, camera.height)
+        report = strategy.step_post_backward(model, opts, state, step, out, camera.width, camera.height)
         if report is not None:
             reports.append(report)
         sizes.append(len(model))

@@ -3,7 +3,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from pidg.evaluation.metrics import ssim
+from pidg.metrics import ssim
 from pidg.training.fused_ssim import blur, fused_ssim, gaussian_window_1d
 
 

@@ -5,6 +5,8 @@ import pytest
 import torch
 
 from pidg.data.procedural import ProceduralSceneConfig, make_procedural_scene
+from pidg.evaluation.evaluate import flow_end_point_errors
+from pidg.flow import flow_target_for_pair, model_flow_target
 from pidg.models.deformation import HashGridConfig
 from pidg.training.config import TrainConfig
 from pidg.training.trainer import Trainer
@@ -42,7 +44,7 @@ def test_training_reduces_the_loss_and_densifies(scene, tmp_path):
     assert summary["gaussians"] != 400  # densification and pruning ran
     assert set(summary["step_breakdown_ms"]) == {"deformation", "render", "loss", "backward", "optimizer", "densification"}  # no physics, no flow
     assert (tmp_path / "checkpoint.pt").is_file() and (tmp_path / "config.json").is_file()
-    assert trainer.decoupled  # the procedural scene has motion masks
+    assert trainer.model.dynamic_mask is not None  # the procedural scene has motion masks: decoupled
 
 
 def test_resume_matches_an_uninterrupted_run(scene, tmp_path):
@@ -54,18 +56,19 @@ def test_resume_matches_an_uninterrupted_run(scene, tmp_path):
     assert resumed.step == 7
     resumed.train()
     assert resumed.step == full.step
-    for name, p in full.model.params.items():
-        q = resumed.model.params[name]
+    for name, p in full.model.gaussians.params.items():
+        q = resumed.model.gaussians.params[name]
         assert p.shape == q.shape, name
         assert torch.allclose(p, q, atol=1e-5, rtol=1e-4), name
-    assert torch.equal(full.model.particle_index, resumed.model.particle_index)
-    for (n1, a), (n2, b) in zip(full.deformation.state_dict().items(), resumed.deformation.state_dict().items()):
+    assert torch.equal(full.model.gaussians.particle_index, resumed.model.gaussians.particle_index)
+    for (n1, a), (n2, b) in zip(full.model.deformation.state_dict().items(), resumed.model.deformation.state_dict().items()):
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), n1
 
 
 def physics_flow_config(out_dir, iterations=10) -> TrainConfig:
     cfg = tiny_config(out_dir, iterations)
-    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=64, block_size=32, width=16, embedding_dim=8)
+    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=64, block_size=32)
+    cfg.material = dataclasses.replace(cfg.material, width=16, embedding_dim=8)
     cfg.flow = dataclasses.replace(cfg.flow, kind="lpfm")
     cfg.output = dataclasses.replace(cfg.output, log_every=1)
     # opaque from the start, so that a few steps already render depth and flow where the target is defined
@@ -76,16 +79,16 @@ def physics_flow_config(out_dir, iterations=10) -> TrainConfig:
 
 def test_full_pidg_step_adds_cmr_and_lpfm_and_trains_the_material_field(scene, tmp_path):
     trainer = Trainer(physics_flow_config(tmp_path), scene)
-    before = {k: v.detach().clone() for k, v in trainer.material_field.state_dict().items()}
+    before = {k: v.detach().clone() for k, v in trainer.model.material_field.state_dict().items()}
     summary = trainer.train()
     logged = trainer.history[-1]
     assert "cmr" in logged and logged["cmr"] >= 0.0
     assert any(h.get("lpfm_valid_pixels", 0) > 0 for h in trainer.history)  # supervised on some steps
     assert {"physics", "flow"} <= set(summary["step_breakdown_ms"])
     assert "cmr_final" in summary and len(summary["cmr_history"]) == 10
-    changed = [k for k, v in trainer.material_field.state_dict().items() if not torch.equal(v, before[k])]
+    changed = [k for k, v in trainer.model.material_field.state_dict().items() if not torch.equal(v, before[k])]
     assert any("planes" in k for k in changed) and any("head_velocity" in k for k in changed)
-    errors = trainer.flow_end_point_errors()
+    errors = flow_end_point_errors(trainer.model, trainer.flow_cache, trainer.config.flow)
     assert errors["flow_supervised_pixels"] > 0 and errors["velocity_flow_epe"] >= 0.0
 
 
@@ -97,31 +100,61 @@ def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path):
     half.train(iterations=10)
     resumed = Trainer.from_checkpoint(tmp_path / "half" / "checkpoint.pt", scene)
     resumed.train()
-    for (name, a), (_, b) in zip(full.material_field.state_dict().items(), resumed.material_field.state_dict().items()):
+    for (name, a), (_, b) in zip(full.model.material_field.state_dict().items(), resumed.model.material_field.state_dict().items()):
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), name
-    for name, p in full.model.params.items():
-        assert torch.allclose(p, resumed.model.params[name], atol=1e-5, rtol=1e-4), name
+    for name, p in full.model.gaussians.params.items():
+        assert torch.allclose(p, resumed.model.gaussians.params[name], atol=1e-5, rtol=1e-4), name
 
 
 def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):
-    from pidg.flow import flow_target_for_pair
-
     trainer = Trainer(physics_flow_config(tmp_path, iterations=1), scene)
     pair = trainer.flow_cache.pair(0)
     depth = torch.full((pair.frame1.height, pair.frame1.width), 3.5)
     pair.frame1.depth = depth
+    flow_term = next(term for term in trainer.loss_terms if term.name == "lpfm")
+    state_t1 = trainer.model.at(pair.frame1.time)
     try:
-        target = trainer.flow_target(pair, trainer.gaussians_at(pair.frame1.time))
+        targets = [flow_term.target(trainer.model, pair, state_t1, step=0), model_flow_target(trainer.model, pair, state_t1, trainer.config.flow)]
     finally:
         pair.frame1.depth = None
     expected = flow_target_for_pair(pair, depth, trainer.config.flow)
-    assert torch.equal(target.flow, expected.flow) and torch.equal(target.valid, expected.valid)
+    for target in targets:  # the training term and evaluation build the same target
+        assert torch.equal(target.flow, expected.flow) and torch.equal(target.valid, expected.valid)
 
 
 def test_physics_time_unit_is_one_training_frame_by_default(scene, tmp_path):
     trainer = Trainer(physics_flow_config(tmp_path, iterations=1), scene)
     times = sorted(f.time for f in scene.train)
-    assert trainer.physics_time_scale == pytest.approx(1.0 / (times[1] - times[0]))
+    axis = trainer.model.time_axis
+    assert axis.physics_per_dataset == pytest.approx(1.0 / (times[1] - times[0]))
+    assert axis.frame_interval == pytest.approx(times[1] - times[0]) and axis.frame_dt == pytest.approx(1.0)
     cfg = physics_flow_config(tmp_path / "b", iterations=1)
     cfg.physics = dataclasses.replace(cfg.physics, time_scale=1.0)
-    assert Trainer(cfg, scene).physics_time_scale == 1.0
+    assert Trainer(cfg, scene).model.time_axis.physics_per_dataset == 1.0
+
+
+def test_the_smoothness_term_is_the_frame_t_pass_s(scene, tmp_path, monkeypatch):
+    """With the flow loss the deformation runs at t and at t+1 in one step: the smoothness term is the frame-t
+    pass's, and the t+1 pass computes none (it used to overwrite the frame-t term)."""
+    cfg = physics_flow_config(tmp_path, iterations=20)
+    cfg.optim = dataclasses.replace(cfg.optim, static_warmup=0)
+    trainer = Trainer(cfg, scene)
+    deformation = trainer.model.deformation
+    original = deformation.forward
+    calls = []
+
+    def recording(means, quats, log_scales, t, static_mask=None, regularize=False):
+        out = original(means, quats, log_scales, t, static_mask=static_mask, regularize=regularize)
+        calls.append((float(t), regularize, out.regularization))
+        return out
+
+    monkeypatch.setattr(deformation, "forward", recording)
+    with_pairs = 0
+    for _ in range(8):
+        calls.clear()
+        parts = trainer.train_step()
+        (t0, regularized, reg), *rest = calls
+        assert regularized and reg is not None and parts["deform_reg"] == float(reg.detach())
+        assert all(not r and value is None for _, r, value in rest)  # t+1 (flow) passes
+        with_pairs += bool(rest)
+    assert with_pairs >= 5  # 8 frames: every frame but the last starts a flow pair

@@ -6,11 +6,12 @@ composes it. ``build_deformation(config, bounds)`` turns it (or a single model's
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
-from typing import Any, Literal
+from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 from torch import Tensor
 
+from pidg.config_tools import check_choices
 from pidg.models.deformation.base import (
     GROUP_GRID,
     GROUP_MLP,
@@ -28,7 +29,7 @@ from pidg.models.deformation.hash_grid import (
     GRID4D_TEMPORAL,
     HashGrid,
     HashGridConfig,
-    bench_hash_grid,
+    HashGridBackend,
     hash_encode,
     hash_encode_reference,
 )
@@ -43,33 +44,26 @@ class DeformationConfig:
     """Which deformation model to use (``kind``) and the settings of each; only the chosen one is read."""
 
     kind: DeformationKind = "grid4d"
+    """The deformation field: grid4d (the paper's), mlp (Deformable-3DGS baseline) or identity (a static scene)."""
     grid4d: Grid4DConfig = field(default_factory=Grid4DConfig)
+    """Settings of the Grid4D field (read when kind is grid4d)."""
     mlp: MLPDeformationConfig = field(default_factory=MLPDeformationConfig)
+    """Settings of the MLP baseline (read when kind is mlp)."""
 
     def __post_init__(self) -> None:
-        if self.kind not in _MODELS:
-            raise ValueError(f"DeformationConfig: unknown kind {self.kind!r}; expected one of {sorted(_MODELS)}")
-        if isinstance(self.grid4d, dict):  # from a saved (JSON) run config
-            self.grid4d = _from_dict(Grid4DConfig, self.grid4d)
-        if isinstance(self.mlp, dict):
-            self.mlp = _from_dict(MLPDeformationConfig, self.mlp)
+        check_choices(self)
 
     @property
     def selected(self) -> Grid4DConfig | MLPDeformationConfig | IdentityDeformationConfig:
         return self.grid4d if self.kind == "grid4d" else self.mlp if self.kind == "mlp" else IdentityDeformationConfig()
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "DeformationConfig":
-        """Inverse of ``dataclasses.asdict`` (also after a JSON round trip)."""
-        return _from_dict(cls, values)
-
-
-def _from_dict(config_type: type, values: dict[str, Any]) -> Any:
-    known = {f.name for f in fields(config_type)}
-    unknown = set(values) - known
-    if unknown:
-        raise ValueError(f"{config_type.__name__}: unknown fields {sorted(unknown)}")
-    return config_type(**values)
+    def of(cls, model: DeformationModel) -> "DeformationConfig":
+        """The config that builds a model like ``model`` (its kind and its settings; the others at default)."""
+        for kind, (_, model_type) in _MODELS.items():
+            if type(model) is model_type:
+                return cls(kind=kind, **({kind: model.config} if kind in ("grid4d", "mlp") else {}))  # type: ignore[arg-type]
+        raise TypeError(f"DeformationConfig.of: unknown deformation model {type(model).__name__}")
 
 
 _MODELS: dict[str, tuple[type, type[DeformationModel]]] = {
@@ -77,6 +71,7 @@ _MODELS: dict[str, tuple[type, type[DeformationModel]]] = {
     "mlp": (MLPDeformationConfig, MLPDeformation),
     "identity": (IdentityDeformationConfig, IdentityDeformation),
 }
+assert set(_MODELS) == set(get_args(DeformationKind)), "every DeformationKind needs a model, and no model is unnamed"
 
 
 def build_deformation(
@@ -104,13 +99,13 @@ __all__ = [
     "Grid4D",
     "Grid4DConfig",
     "HashGrid",
+    "HashGridBackend",
     "HashGridConfig",
     "IdentityDeformation",
     "IdentityDeformationConfig",
     "MLPDeformation",
     "MLPDeformationConfig",
     "as_bounds",
-    "bench_hash_grid",
     "build_deformation",
     "hash_encode",
     "hash_encode_reference",

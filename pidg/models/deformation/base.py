@@ -1,8 +1,10 @@
 """The interface every deformation model implements: canonical Gaussians + time -> Gaussians at that time.
 
 Kept small on purpose so that Grid4D, the MLP baseline and "no deformation" are interchangeable from the config:
-``forward(means, quats, log_scales, t, static_mask) -> DeformedGaussians``, ``regularization_loss()`` and
-``parameter_groups()`` (so the trainer can give hash grids a larger learning rate than MLPs).
+``forward(means, quats, log_scales, t, static_mask, regularize) -> DeformedGaussians`` and ``parameter_groups()``
+(so the trainer can give hash grids a larger learning rate than MLPs). A model with a regulariser (Grid4D's
+smoothness term) returns it with the pass that asked for it (``regularize=True``), so a step that deforms to
+several times (t and t+1 for the flow loss) knows which pass each term belongs to.
 
 Conventions shared by the models:
   * quaternions are (w, x, y, z) like the renderer, and need not be normalised (the renderer normalises);
@@ -31,9 +33,10 @@ GROUP_MLP = "mlp"  # network weights
 class DeformedGaussians:
     """Gaussians at one time: the canonical ones moved by a deformation model."""
 
-    means: Tensor  # [N, 3]
+    means: Tensor  # [N, 3] world units
     quats: Tensor  # [N, 4] (w, x, y, z)
-    log_scales: Tensor  # [N, 3]
+    log_scales: Tensor  # [N, 3] log of world units
+    regularization: Tensor | None = None  # the model's regulariser for this pass (scalar; None unless asked for)
 
 
 @dataclass(frozen=True)
@@ -141,11 +144,13 @@ class DeformationModel(nn.Module, ABC):
         log_scales: Tensor,
         t: float | Tensor,
         static_mask: Tensor | None = None,
+        regularize: bool = False,
     ) -> DeformedGaussians:
         """Deform canonical Gaussians [N, ...] to time t (a float or [N] times, in [0, 1]).
 
         Rows where ``static_mask`` [N] bool is True are returned unchanged and are not evaluated at all (stage 2
         of PIDG keeps static Gaussians out of the deformation), so they receive no gradient through the model.
+        ``regularize``: also return the model's regulariser on the deformed rows (training).
         """
         n = means.shape[0]
         if means.shape != (n, 3) or quats.shape != (n, 4) or log_scales.shape != (n, 3):
@@ -155,38 +160,30 @@ class DeformationModel(nn.Module, ABC):
             )
         times = times_column(t, n, means)
         if static_mask is None:
-            return self.deform(means, quats, log_scales, times)
+            return self.deform(means, quats, log_scales, times, regularize)
         if static_mask.shape != (n,) or static_mask.dtype != torch.bool:
             raise ValueError(f"deformation: static_mask must be a bool tensor [N] = [{n}], got {static_mask.dtype} {list(static_mask.shape)}")
         rows = torch.nonzero(~static_mask).squeeze(1)
         if rows.numel() == n:
-            return self.deform(means, quats, log_scales, times)
+            return self.deform(means, quats, log_scales, times, regularize)
         if rows.numel() == 0:
             return DeformedGaussians(means, quats, log_scales)
-        moved = self.deform(means[rows], quats[rows], log_scales[rows], times[rows])
+        moved = self.deform(means[rows], quats[rows], log_scales[rows], times[rows], regularize)
         return DeformedGaussians(
             means.index_copy(0, rows, moved.means.to(means.dtype)),
             quats.index_copy(0, rows, moved.quats.to(quats.dtype)),
             log_scales.index_copy(0, rows, moved.log_scales.to(log_scales.dtype)),
+            moved.regularization,
         )
 
     @abstractmethod
-    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor) -> DeformedGaussians:
-        """Deform every row; ``times`` is [N]."""
-
-    def regularization_loss(self) -> Tensor:
-        """The model's own regulariser for the most recent training forward pass (0 when it has none)."""
-        return torch.zeros((), device=self._device())
+    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
+        """Deform every row; ``times`` is [N]; with ``regularize``, fill ``regularization`` if the model has one."""
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by optimiser group (``GROUP_GRID``, ``GROUP_MLP``); empty groups are left out."""
         params = [p for p in self.parameters() if p.requires_grad]
         return {GROUP_MLP: params} if params else {}
-
-    def _device(self) -> torch.device:
-        for tensor in list(self.parameters()) + list(self.buffers()):
-            return tensor.device
-        return torch.device("cpu")
 
 
 class NormalizedPositions(nn.Module):

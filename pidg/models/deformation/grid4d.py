@@ -23,8 +23,9 @@ Grid4D's code only adds dr. All decoder output layers start at zero, so the init
 identity; consequently the first backward pass only reaches the output layers, and everything else starts
 receiving gradients once they have moved away from zero (one optimiser step).
 
-Regulariser (Grid4D): on a random ``reg_fraction`` of the points of the last training forward pass, perturb the
-grid coordinates by uniform noise and penalise the squared change of the spatial and temporal grid features.
+Regulariser (Grid4D): on a random ``reg_fraction`` of the points of a forward pass called with ``regularize=True``,
+perturb the grid coordinates by uniform noise and penalise the squared change of the spatial and temporal grid
+features; the pass returns the term in ``DeformedGaussians.regularization``.
 The sampled points and their perturbed copies are encoded in the same kernel call as the forward pass's points
 (one call per grid, one table gradient), and the term is evaluated right there. Gathering the sample's features
 from the forward pass instead makes autograd build and add a dense zero-filled [N, 192] gradient (measured ~25 ms
@@ -41,6 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from pidg.config_tools import check_choices
 from pidg.models.deformation.base import (
     GROUP_GRID,
     GROUP_MLP,
@@ -55,7 +57,7 @@ from pidg.models.deformation.base import (
 from pidg.models.deformation.hash_grid import (
     GRID4D_SPATIAL,
     GRID4D_TEMPORAL,
-    Backend,
+    HashGridBackend,
     HashGrid,
     HashGridConfig,
 )
@@ -70,32 +72,38 @@ class Grid4DConfig:
     """
 
     spatial_grid: HashGridConfig = field(default_factory=lambda: GRID4D_SPATIAL)
+    """G_xyz, the time-independent grid behind the directional attention."""
     temporal_grid: HashGridConfig = field(default_factory=lambda: GRID4D_TEMPORAL)
+    """G_xyt, G_yzt, G_xzt (one config for the three; the third axis of each is time)."""
     width: int = 256
-    decoder_depth: int = 0  # hidden Linear+ReLU layers between h and the heads
-    # f_s as a bare Linear (Grid4D's code) lets a = 2 sigmoid - 1 be negative; the paper's text puts a ReLU
-    # after it, which confines a to [0, 1) and contradicts its own a in (-1, 1). Set True to follow the text.
+    """Width of f_s, f_t and the decoder (paper: 256)."""
+    decoder_depth: int = 0
+    """Hidden Linear+ReLU layers between h and the heads (paper: 0 for synthetic scenes, 1 for real ones)."""
     spatial_relu: bool = False
-    time_margin: float = 0.9  # t in [0, 1] -> [0.5 - m / 2, 0.5 + m / 2] on the temporal grids
-    rotate_with_warp: bool = True  # the rigid warp also rotates the Gaussian's orientation
-    # Encode detached positions (as Grid4D and Deformable-3DGS do): canonical means still get gradients through
-    # mu' directly, just not through the grids' coordinate derivatives (which would cost ~a forward pass more).
+    """ReLU after f_s, as the paper's text says. Off by default: Grid4D's code uses a bare Linear, which lets
+    a = 2 sigmoid - 1 be negative, while the ReLU confines a to [0, 1), contradicting the text's own a in (-1, 1)."""
+    time_margin: float = 0.9
+    """t in [0, 1] maps to [0.5 - m/2, 0.5 + m/2] on the temporal grids (away from their boundary)."""
+    rotate_with_warp: bool = True
+    """The rigid warp also rotates the Gaussian's orientation (Grid4D's code only adds dr)."""
     detach_positions: bool = True
-    reg_fraction: float = 0.1  # share of points the smoothness regulariser samples
-    # perturbation half-widths in unit-box coordinates; Grid4D's 1e-2 in its [-1.6, 1.6] box is 1e-2 / 3.2
+    """Encode detached positions (as Grid4D and Deformable-3DGS do): canonical means still get gradients through
+    mu' directly, just not through the grids' coordinate derivatives (which would cost about a forward pass)."""
+    reg_fraction: float = 0.1
+    """Share of the points the smoothness regulariser samples in each regularised pass."""
     reg_spatial_perturb: tuple[float, float, float] = (3.125e-3, 3.125e-3, 3.125e-3)
-    reg_temporal_perturb: tuple[float, float, float, float] = (3.125e-3, 3.125e-3, 3.125e-3, 0.0)  # x, y, z, t
+    """Perturbation half-widths x y z in unit-box coordinates (Grid4D's 1e-2 in its [-1.6, 1.6] box is 1e-2 / 3.2)."""
+    reg_temporal_perturb: tuple[float, float, float, float] = (3.125e-3, 3.125e-3, 3.125e-3, 0.0)
+    """Perturbation half-widths x y z t of the temporal grids' coordinates (unit box)."""
     reg_spatial_weight: float = 1.0
+    """Weight of the spatial grid's smoothness term."""
     reg_temporal_weight: float = 1.0
-    backend: Backend = "auto"  # hash-grid implementation: numba kernel on CPU, torch reference otherwise
+    """Weight of the temporal grids' smoothness term."""
+    backend: HashGridBackend = "auto"
+    """Hash-encoding implementation: numba kernel on CPU tensors, the torch reference otherwise (CUDA)."""
 
     def __post_init__(self) -> None:
-        if isinstance(self.spatial_grid, dict):  # from a saved run config
-            self.spatial_grid = HashGridConfig(**_tuples(self.spatial_grid))
-        if isinstance(self.temporal_grid, dict):
-            self.temporal_grid = HashGridConfig(**_tuples(self.temporal_grid))
-        self.reg_spatial_perturb = tuple(self.reg_spatial_perturb)  # type: ignore[assignment]
-        self.reg_temporal_perturb = tuple(self.reg_temporal_perturb)  # type: ignore[assignment]
+        check_choices(self)
         if self.width < 1 or self.decoder_depth < 0:
             raise ValueError(f"Grid4DConfig: need width >= 1 and decoder_depth >= 0, got {self.width}, {self.decoder_depth}")
         if not 0.0 < self.time_margin <= 1.0:
@@ -104,11 +112,6 @@ class Grid4DConfig:
             raise ValueError(f"Grid4DConfig: reg_fraction must be in [0, 1], got {self.reg_fraction}")
         if len(self.reg_spatial_perturb) != 3 or len(self.reg_temporal_perturb) != 4:
             raise ValueError("Grid4DConfig: reg_spatial_perturb needs 3 values and reg_temporal_perturb 4 (x, y, z, t)")
-
-
-def _tuples(d: dict) -> dict:
-    """JSON turns tuples into lists; the frozen grid config wants hashable tuples back."""
-    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
 
 class Grid4D(DeformationModel):
@@ -135,7 +138,6 @@ class Grid4D(DeformationModel):
         for head in (self.head_warp, self.head_rotation, self.head_scale):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
-        self._reg_loss: Tensor | None = None  # the regulariser of the last training forward pass
         self._attention_cache: tuple[tuple, Tensor, Tensor] | None = None
 
     # -- coordinates and features ------------------------------------------------------------------------------
@@ -180,12 +182,13 @@ class Grid4D(DeformationModel):
 
     # -- deformation ---------------------------------------------------------------------------------------------
 
-    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor) -> DeformedGaussians:
+    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
         dtype = self.grid_xyz.table.dtype
         positions = means.detach() if self.config.detach_positions else means
         u_xyz, u_t = self.grid_coordinates(positions.to(dtype), times.to(dtype))
-        if self.training and torch.is_grad_enabled():
-            spatial, temporal, self._reg_loss = self._encode_with_regularizer(u_xyz, u_t)
+        regularization = None
+        if regularize:
+            spatial, temporal, regularization = self._encode_with_regularizer(u_xyz, u_t)
             a = self.attention(spatial)
         else:
             a = self._cached_attention(u_xyz)
@@ -201,7 +204,9 @@ class Grid4D(DeformationModel):
         if self.config.rotate_with_warp:
             new_quats = quat_multiply(q_warp, new_quats)
         new_log_scales = log_scales.to(dtype) + scale
-        return DeformedGaussians(new_means.to(means.dtype), new_quats.to(quats.dtype), new_log_scales.to(log_scales.dtype))
+        return DeformedGaussians(
+            new_means.to(means.dtype), new_quats.to(quats.dtype), new_log_scales.to(log_scales.dtype), regularization
+        )
 
     def _heads(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(warp [N, 7], dr [N, 4], ds [N, 3]): the three heads as one matrix product (a third of the launches
@@ -213,8 +218,9 @@ class Grid4D(DeformationModel):
     # -- regulariser --------------------------------------------------------------------------------------------
 
     def _encode_with_regularizer(self, u_xyz: Tensor, u_t: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-        """Spatial [N, Fs] and temporal [N, Ft] features of the points, and the smoothness term on a random
-        ``reg_fraction`` of them (None when nothing is sampled); see the module docstring."""
+        """Spatial [N, Fs] and temporal [N, Ft] features of the points, and Grid4D's smoothness term on a random
+        ``reg_fraction`` of them: weight * mean over the sampled points of the summed squared feature change under
+        a small uniform perturbation, spatial plus temporal grids (None when nothing is sampled)."""
         cfg = self.config
         n = u_xyz.shape[0]
         m = int(round(n * cfg.reg_fraction))
@@ -229,13 +235,6 @@ class Grid4D(DeformationModel):
             cfg.reg_temporal_perturb, temporal_w,
         )
         return spatial, temporal, spatial_term + temporal_term
-
-    def regularization_loss(self) -> Tensor:
-        """Grid4D's smoothness term for the last training forward pass: weight * mean over the sampled points of
-        the summed squared feature change under a small uniform perturbation (spatial and temporal grids).
-        The term is consumed: a second call before the next forward pass returns 0."""
-        loss, self._reg_loss = self._reg_loss, None
-        return loss if loss is not None else torch.zeros((), device=self._device())
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         grids = [g.table for g in (self.grid_xyz, self.grid_xyt, self.grid_yzt, self.grid_xzt)]

@@ -32,9 +32,8 @@ from __future__ import annotations
 
 import sys
 import threading
-import time
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import numba
 import numpy as np
@@ -43,7 +42,8 @@ from numba import njit, prange
 from torch import Tensor, nn
 
 HASH_PRIMES = (1, 2654435761, 805459861)
-Backend = Literal["auto", "cpu", "torch"]
+#: Which hash-encoding implementation runs: "cpu" (numba kernel), "torch" (reference, any device), "auto" (by device).
+HashGridBackend = Literal["auto", "cpu", "torch"]
 Resolution = int | tuple[int, int, int]
 LANES = 16  # points processed together in the kernels' inner loops
 _CHUNK = 512  # points per parallel task of the point-parallel kernels (a multiple of LANES)
@@ -54,11 +54,17 @@ class HashGridConfig:
     """One 3D multiresolution hash grid. Defaults: Grid4D's spatial grid G_xyz."""
 
     n_levels: int = 16
-    n_features: int = 2  # per level
-    log2_table_size: int = 19  # rows per hashed level
-    base_resolution: Resolution = 16  # coarsest level, per axis if a tuple
-    finest_resolution: Resolution = 2048  # finest level, per axis if a tuple
-    init_range: float = 1e-4  # table entries start uniform in [-init_range, init_range] (Instant-NGP)
+    """Resolution levels L (the output has L * n_features columns)."""
+    n_features: int = 2
+    """Features per level."""
+    log2_table_size: int = 19
+    """log2 of the rows of a hashed level (coarse levels that fit are stored densely)."""
+    base_resolution: Resolution = 16
+    """Vertices per axis of the coarsest level (one int, or 3 for x y z of the grid's unit box)."""
+    finest_resolution: Resolution = 2048
+    """Vertices per axis of the finest level (one int, or 3)."""
+    init_range: float = 1e-4
+    """Table entries start uniform in [-init_range, init_range] (Instant-NGP)."""
 
     def __post_init__(self) -> None:
         if self.n_levels < 1 or self.n_features < 1:
@@ -436,18 +442,18 @@ def hash_encode_cpu(coords: Tensor, table: Tensor, layout: GridLayout) -> Tensor
     return _HashEncodeCPU.apply(coords, table, layout)
 
 
-def resolve_backend(backend: Backend, table: Tensor) -> Literal["cpu", "torch"]:
+def resolve_backend(backend: HashGridBackend, table: Tensor) -> Literal["cpu", "torch"]:
     """auto: the kernel for float32 CPU tables, the torch reference otherwise (CUDA, or float64 for checks)."""
     if backend == "auto":
         return "cpu" if table.device.type == "cpu" and table.dtype == torch.float32 else "torch"
     if backend == "cpu" and table.device.type != "cpu":
         raise ValueError(f"hash_encode: backend 'cpu' needs CPU tensors, got {table.device}")
-    if backend not in ("cpu", "torch"):
-        raise ValueError(f"hash_encode: unknown backend {backend!r} (auto, cpu, torch)")
+    if backend not in get_args(HashGridBackend):
+        raise ValueError(f"hash_encode: unknown backend {backend!r} ({', '.join(get_args(HashGridBackend))})")
     return backend
 
 
-def hash_encode(coords: Tensor, table: Tensor, layout: GridLayout, backend: Backend = "auto") -> Tensor:
+def hash_encode(coords: Tensor, table: Tensor, layout: GridLayout, backend: HashGridBackend = "auto") -> Tensor:
     """Encode points coords [N, 3] (unit box, see module docstring) with ``table`` -> [N, L * F]."""
     if coords.dim() != 2 or coords.shape[1] != 3:
         raise ValueError(f"hash_encode: coords must be [N, 3], got {list(coords.shape)}")
@@ -463,10 +469,10 @@ def hash_encode(coords: Tensor, table: Tensor, layout: GridLayout, backend: Back
 class HashGrid(nn.Module):
     """A learnable multiresolution hash grid: unit-box points [N, 3] -> features [N, n_levels * n_features]."""
 
-    def __init__(self, config: HashGridConfig = HashGridConfig(), backend: Backend = "auto") -> None:
+    def __init__(self, config: HashGridConfig = HashGridConfig(), backend: HashGridBackend = "auto") -> None:
         super().__init__()
         self.config = config
-        self.backend: Backend = backend
+        self.backend: HashGridBackend = backend
         self.layout = grid_layout(config)
         table = torch.empty(self.layout.n_rows, config.n_features).uniform_(-config.init_range, config.init_range)
         self.table = nn.Parameter(table)
@@ -488,55 +494,7 @@ class HashGrid(nn.Module):
 
 
 # ----------------------------------------------------------------------------------------------------------------
-# benchmark
+# Grid4D's grids (the paper's sizes)
 
 GRID4D_SPATIAL = HashGridConfig(16, 2, 19, 16, 2048)
 GRID4D_TEMPORAL = HashGridConfig(32, 2, 19, (8, 8, 8), (32, 32, 16))
-
-
-def _fwd_bwd_seconds(grids: list[HashGrid], coords: list[Tensor], weights: list[Tensor], backend: Backend) -> float:
-    """Seconds of one forward + backward of all grids (w.r.t. the tables, and coords if they require grad)."""
-    for g in grids:
-        g.table.grad = None
-    start = time.perf_counter()
-    loss = sum((hash_encode(c, g.table, g.layout, backend) * w).sum() for g, c, w in zip(grids, coords, weights))
-    loss.backward()  # type: ignore[union-attr]
-    return time.perf_counter() - start
-
-
-def bench_hash_grid(n_points: int = 20_000, repeats: int = 3, seed: int = 0) -> dict[str, float]:
-    """Forward + backward of Grid4D's four grids at ``n_points``: numba kernel vs torch reference.
-
-    The machine this was written on is shared and its capacity swings between one and two cores, so kernel and
-    reference runs are interleaved and the speed-up is the ratio of their medians in the same run. Prints and
-    returns median seconds per case (kernel: spatial grid, the three temporal grids, all four, all four with
-    coordinate gradients; reference: all four) and the speed-up.
-    Run: ``python -c "import pidg.models.deformation as d; d.bench_hash_grid()"``.
-    """
-    gen = torch.Generator().manual_seed(seed)
-    torch.manual_seed(seed)
-    grids = [HashGrid(GRID4D_SPATIAL)] + [HashGrid(GRID4D_TEMPORAL) for _ in range(3)]
-    coords = [torch.rand(n_points, 3, generator=gen) for _ in grids]
-    coords_grad = [c.clone().requires_grad_(True) for c in coords]
-    weights = [torch.randn(n_points, g.out_dim, generator=gen) for g in grids]
-    cases = {
-        "kernel_spatial": lambda: _fwd_bwd_seconds(grids[:1], coords[:1], weights[:1], "cpu"),
-        "kernel_temporal_x3": lambda: _fwd_bwd_seconds(grids[1:], coords[1:], weights[1:], "cpu"),
-        "kernel_all": lambda: _fwd_bwd_seconds(grids, coords, weights, "cpu"),
-        "kernel_all_coord_grad": lambda: _fwd_bwd_seconds(grids, coords_grad, weights, "cpu"),
-        "torch_all": lambda: _fwd_bwd_seconds(grids, coords, weights, "torch"),
-    }
-    for run in cases.values():  # compile / load the kernels, warm the allocator
-        run()
-    times: dict[str, list[float]] = {name: [] for name in cases}
-    for _ in range(repeats):
-        for name, run in cases.items():
-            times[name].extend(run() for _ in range(1 if name == "torch_all" else 5))
-    results = {name: float(np.median(t)) for name, t in times.items()}
-    results["speedup"] = results["torch_all"] / results["kernel_all"]
-    print(f"hash grids (Grid4D config), {n_points} points, forward + backward, median seconds "
-          f"(numba threads: {numba.get_num_threads()}, torch threads: {torch.get_num_threads()})")
-    for name, value in results.items():
-        print(f"  {name:24s} {value:8.4f}" + ("x" if name == "speedup" else " s"))
-    return results
-

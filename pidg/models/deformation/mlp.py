@@ -31,14 +31,19 @@ class MLPDeformationConfig:
     """Defaults: Deformable-3DGS (8 x 256, skip after layer 4). A CPU configuration may use e.g. 4 x 64."""
 
     depth: int = 8
+    """Hidden layers of the MLP."""
     width: int = 256
-    skips: tuple[int, ...] = (4,)  # re-inject the encoded input after these layers (0-based)
+    """Width of every hidden layer."""
+    skips: tuple[int, ...] = (4,)
+    """Re-inject the encoded input after these layers (0-based)."""
     position_frequencies: int = 10
+    """NeRF positional-encoding frequencies of the normalised position."""
     time_frequencies: int = 6
-    detach_positions: bool = True  # encode detached positions, as Deformable-3DGS does
+    """NeRF positional-encoding frequencies of the time t in [0, 1]."""
+    detach_positions: bool = True
+    """Encode detached positions, as Deformable-3DGS does (canonical means still get gradients through mu')."""
 
     def __post_init__(self) -> None:
-        self.skips = tuple(self.skips)
         if self.depth < 1 or self.width < 1:
             raise ValueError(f"MLPDeformationConfig: need depth >= 1 and width >= 1, got {self.depth}, {self.width}")
         if any(not 0 <= s < self.depth - 1 for s in self.skips):
@@ -78,7 +83,8 @@ class MLPDeformation(DeformationModel):
         t = positional_encoding(times[:, None], self.config.time_frequencies)
         return torch.cat([x, t], dim=-1)
 
-    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor) -> DeformedGaussians:
+    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
+        """Deform every row (the baseline has no regulariser: ``regularize`` changes nothing)."""
         dtype = self.head_scale.weight.dtype
         positions = means.detach() if self.config.detach_positions else means
         inputs = self.encode(positions.to(dtype), times.to(dtype))

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from pidg.evaluation import lpips as lpips_mod
-from pidg.evaluation.metrics import (
+from pidg.metrics import lpips as lpips_mod
+from pidg.metrics import (
     MS_SSIM_MIN_SIDE,
     ImageTooSmallError,
     compute_metrics,

@@ -1,4 +1,4 @@
-"""Image-quality metrics for novel-view synthesis: PSNR, SSIM, MS-SSIM and LPIPS.
+"""Pixel metrics for novel-view synthesis: PSNR, SSIM and MS-SSIM (LPIPS: :mod:`pidg.metrics.lpips`).
 
 Conventions (those of the 3DGS / D-NeRF evaluation code, so numbers are comparable with published tables):
 
@@ -12,29 +12,14 @@ Conventions (those of the 3DGS / D-NeRF evaluation code, so numbers are comparab
   used by its deformable/4D descendants), which zero-pads by 5 px: on white-background D-NeRF frames that reads
   higher (lego 800x800, two test views: 0.7292 valid vs 0.7360 zeros), so compare like with like;
 * MS-SSIM: same window, the 5 standard scale weights of Wang et al. 2003; it needs the short side > 160 px;
-* LPIPS v0.1 with AlexNet and VGG16 heads, inputs mapped to [-1, 1] internally (see :mod:`pidg.evaluation.lpips`).
+* LPIPS v0.1 with AlexNet and VGG16 heads, inputs mapped to [-1, 1] internally (see :mod:`pidg.metrics.lpips`).
 """
 from __future__ import annotations
 
-import warnings
-from typing import Literal, Sequence
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
-
-from pidg.evaluation.lpips import INSTALL_HINT, LPIPSError, NetName, lpips, lpips_weights_available
-
-__all__ = [
-    "MS_SSIM_MIN_SIDE",
-    "SSIM_WIN_SIZE",
-    "SSIM_WIN_SIGMA",
-    "ImageTooSmallError",
-    "compute_metrics",
-    "ms_ssim",
-    "psnr",
-    "ssim",
-    "to_bchw",
-]
 
 SSIM_WIN_SIZE = 11
 SSIM_WIN_SIGMA = 1.5
@@ -163,44 +148,3 @@ def ms_ssim(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
         p, g, data_range=1.0, size_average=False, win_size=SSIM_WIN_SIZE, win_sigma=SSIM_WIN_SIGMA, K=SSIM_K
     )
     return _out(val, squeeze)
-
-
-def compute_metrics(
-    pred: torch.Tensor,
-    gt: torch.Tensor,
-    lpips_nets: Sequence[NetName] = ("alex", "vgg"),
-    ssim_padding: SSIMPadding = "valid",
-) -> dict[str, float | None]:
-    """All metrics for one image (``[H,W,3]``) or the mean over a batch (``[B,3,H,W]``), as Python floats.
-
-    Keys: ``psnr``, ``ssim``, ``ms_ssim``, and ``lpips_<net>`` for each requested net. ``pred`` is clamped to
-    [0, 1] first (renders can overshoot slightly). A metric that cannot be computed is ``None`` and a
-    ``RuntimeWarning`` says why: MS-SSIM on images smaller than 161 px, LPIPS when its weights are not installed
-    or the image is too small for the backbone. PSNR and SSIM are always computed; ``ssim_padding`` only affects
-    SSIM (MS-SSIM always uses valid filtering).
-    """
-    pred = pred.detach().clamp(0.0, 1.0)
-    gt = gt.detach()
-
-    def mean(x: torch.Tensor) -> float:
-        return float(x.double().mean())
-
-    out: dict[str, float | None] = {"psnr": mean(psnr(pred, gt)), "ssim": mean(ssim(pred, gt, ssim_padding))}
-    try:
-        out["ms_ssim"] = mean(ms_ssim(pred, gt))
-    except ImageTooSmallError as e:
-        warnings.warn(f"ms_ssim reported as None: {e}", RuntimeWarning, stacklevel=2)
-        out["ms_ssim"] = None
-    for net in lpips_nets:
-        key = f"lpips_{net}"
-        if not lpips_weights_available((net,)):
-            warnings.warn(f"{key} reported as None: {INSTALL_HINT}", RuntimeWarning, stacklevel=2)
-            out[key] = None
-            continue
-        try:
-            out[key] = mean(lpips(pred, gt, net))
-        except LPIPSError as e:
-            warnings.warn(f"{key} reported as None: {e}", RuntimeWarning, stacklevel=2)
-            out[key] = None
-    return out
-

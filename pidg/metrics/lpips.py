@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from pidg.metrics.image import to_bchw
+
 NetName = Literal["alex", "vgg"]
 
 #: Environment variable that may point at a directory holding ``alexnet.ckpt`` / ``vgg16.ckpt``.
@@ -246,8 +248,6 @@ def lpips(pred: torch.Tensor, gt: torch.Tensor, net: NetName = "alex") -> torch.
 
     Runs on ``pred``'s device with a cached model. Raises :class:`LPIPSWeightsMissing` if weights are not installed.
     """
-    from pidg.evaluation.metrics import to_bchw  # local import: metrics imports this module
-
     p, squeeze = to_bchw(pred)
     g, _ = to_bchw(gt)
     d = get_lpips(net, p.device)(p, g)

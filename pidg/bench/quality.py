@@ -13,17 +13,12 @@ from typing import Callable
 from pidg.config_tools import apply_overrides
 from pidg.data import load_scene
 from pidg.data.scene import parse_downscale
-from pidg.evaluation.lpips import lpips_weights_available
-from pidg.training.config import TrainConfig
-
-# name -> config overrides (dotted names, as on the command line)
-VARIANTS: dict[str, dict[str, str]] = {
-    "base": {"physics.kind": "none", "flow.kind": "none"},  # PIDG w/o (CMR + LPFM)
-    "cmr": {"physics.kind": "cmr", "flow.kind": "none"},  # PIDG w/o LPFM
-    "full": {"physics.kind": "cmr", "flow.kind": "lpfm"},  # PIDG
-    "nostress": {"physics.kind": "cmr", "physics.stress": "false", "flow.kind": "none"},  # sigma == 0 ablation
-    "lpfm": {"physics.kind": "none", "flow.kind": "lpfm"},  # flow matching without the momentum residual
-}
+from pidg.evaluation.evaluate import flow_end_point_errors
+from pidg.flow import open_flow_cache
+from pidg.metrics import NetName, lpips_weights_available
+from pidg.pipeline import evaluate_and_save
+from pidg.training.config import ABLATION_VARIANTS, TrainConfig
+from pidg.training.trainer import Trainer
 
 
 def run_quality_bench(
@@ -39,14 +34,11 @@ def run_quality_bench(
 
     With ``variants`` None the base config runs as given (one row per scene, variant "-").
     """
-    from pidg.pipeline import evaluate_trainer
-    from pidg.training.trainer import Trainer
-
-    unknown = [v for v in variants or [] if v not in VARIANTS]
+    unknown = [v for v in variants or [] if v not in ABLATION_VARIANTS]
     if unknown:
-        raise ValueError(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
+        raise ValueError(f"unknown variants {unknown}; known: {', '.join(ABLATION_VARIANTS)}")
     rows = []
-    nets = tuple(n for n in ("alex", "vgg") if lpips_weights_available((n,)))
+    nets: tuple[NetName, ...] = tuple(n for n in ("alex", "vgg") if lpips_weights_available((n,)))  # type: ignore[misc]
     for path in scenes:
         data = dataclasses.replace(base.data, path=path, progress=False)
         if downscale:
@@ -54,15 +46,18 @@ def run_quality_bench(
         scene = load_scene(data)
         for variant in variants or [None]:
             run_dir = out_root / Path(path).name / (variant or "")
-            config = apply_overrides(base, VARIANTS[variant]) if variant else base
+            config = apply_overrides(base, ABLATION_VARIANTS[variant]) if variant else base
             optim = dataclasses.replace(config.optim, time_budget_minutes=minutes)
             config = dataclasses.replace(
                 config, data=data, optim=optim, output=dataclasses.replace(config.output, dir=run_dir)
             )
             trainer = Trainer(config, scene)
             summary = trainer.train()
-            flow_errors = trainer.flow_end_point_errors() if config.flow.enabled or config.physics.enabled else {}
-            metrics = evaluate_trainer(trainer, run_dir, "test", lpips_nets=nets)  # the model just trained, in memory
+            flow_errors = {}
+            if config.needs_material_field:
+                cache = trainer.flow_cache or open_flow_cache(scene, config.flow, run_dir / "flow_cache", progress=False)
+                flow_errors = flow_end_point_errors(trainer.model, cache, config.flow)
+            metrics = evaluate_and_save(trainer.model, scene, run_dir, "test", nets, trainer.step)  # the model just trained
             row = {
                 "scene": Path(path).name,
                 "variant": variant or "-",

@@ -1,6 +1,6 @@
 """Cost of L_CMR per training step: forward + backward time by sample size and variant, and peak memory by N.
 
-``python -m pidg.physics.bench`` prints a table (and ``--out FILE`` writes JSON). Variants, timed interleaved
+``pidg bench cmr`` prints a table (and ``--out FILE`` writes JSON). Variants, timed interleaved
 (the machine is shared and noisy, so only same-run ratios are meaningful):
   * ``tangents``: the material field's hand-written forward-mode tangents (what training uses), in one block of M
     and, if ``block_size`` < M, in blocks;
@@ -12,7 +12,6 @@ a long-lived process reuses freed memory).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 from collections.abc import Callable
@@ -22,12 +21,11 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from pidg.evaluation.bench_render import _interleaved_medians
-from pidg.models.material_field import MaterialField
-from pidg.physics.cmr import cmr_loss
-from pidg.evaluation.memory import peak_rss_growth_mib
-from pidg.physics.config import PhysicsConfig
-from pidg.physics.jet import FieldJet, jet_from_function
+from pidg.bench.timing import interleaved_medians, peak_rss_growth_mib
+from pidg.models.jet import FieldJet, jet_from_function
+from pidg.models.material_field import MaterialField, MaterialFieldConfig
+from pidg.models.time_axis import TimeAxis
+from pidg.physics import PhysicsConfig, cmr_loss
 
 VARIANTS = ("tangents", "tangents+ckpt", "torch.func")
 
@@ -40,6 +38,7 @@ class CMRBenchConfig:
     repeats: int = 7
     seed: int = 0
     physics: PhysicsConfig = field(default_factory=lambda: PhysicsConfig(kind="cmr"))
+    material: MaterialFieldConfig = field(default_factory=MaterialFieldConfig)
 
 
 class _TorchFuncJet:
@@ -52,40 +51,39 @@ class _TorchFuncJet:
         return jet_from_function(lambda xx, tt: self.field(xx, tt, index), x, torch.as_tensor(t, dtype=x.dtype))
 
 
-def _case(n: int, physics: PhysicsConfig, seed: int) -> tuple[MaterialField, Tensor, Tensor]:
-    """A field over N particles and positions (a leaf standing in for the deformation's output) in its box."""
+def _step_fn(n: int, physics: PhysicsConfig, material: MaterialFieldConfig, variant: str, seed: int) -> Callable[[], None]:
+    """One training-step worth of L_CMR: sample, forward, backward into the field and the positions (a leaf
+    standing in for the deformation's output, a few particles just outside the field's box)."""
     torch.manual_seed(seed)
-    field_ = MaterialField(None, n, physics)
-    positions = (torch.rand(n, 3) * 2.2 - 1.1).requires_grad_(True)  # a few particles just outside the box
-    return field_, positions, torch.arange(n)
-
-
-def _step_fn(n: int, physics: PhysicsConfig, variant: str, seed: int) -> Callable[[], None]:
-    """One training-step worth of L_CMR: sample, forward, backward into the field and the positions."""
-    field_, positions, index = _case(n, physics, seed)
+    field_ = MaterialField(None, n, material)
+    positions = (torch.rand(n, 3) * 2.2 - 1.1).requires_grad_(True)
+    index = torch.arange(n)
     if variant == "tangents+ckpt":
         physics = dataclasses.replace(physics, checkpoint_blocks=True)
     source = _TorchFuncJet(field_) if variant == "torch.func" else field_
     generator = torch.Generator().manual_seed(seed)
     params = [*field_.parameters(), positions]
+    time_axis = TimeAxis(physics_per_dataset=1.0, frame_interval=1.0)
 
     def step() -> None:
-        cmr_loss(source, positions, 0.37, index, physics, generator).loss.backward()
+        cmr_loss(source, positions, 0.37, index, physics, time_axis, generator).loss.backward()
         for p in params:
             p.grad = None
 
     return step
 
 
-def measure_peak_rss(n: int, physics: PhysicsConfig, variant: str = "tangents", seed: int = 0) -> float:
+def measure_peak_rss(n: int, physics: PhysicsConfig, material: MaterialFieldConfig, variant: str = "tangents", seed: int = 0) -> float:
     """Peak RSS growth (MiB) over one step at N particles, sampled every 0.5 ms in a fresh process."""
     setup = (
         "import dataclasses, json\n"
-        "from pidg.physics.bench import _step_fn\n"
-        "from pidg.physics.config import PhysicsConfig\n"
+        "from pidg.bench.cmr import _step_fn\n"
+        "from pidg.models.material_field import MaterialFieldConfig\n"
+        "from pidg.physics import PhysicsConfig\n"
         f"physics = PhysicsConfig(**json.loads({json.dumps(json.dumps(dataclasses.asdict(physics)))}))\n"
-        f"_step_fn(64, dataclasses.replace(physics, samples=8, block_size=8), '{variant}', 0)()  # load kernels\n"
-        f"step = _step_fn({n}, physics, '{variant}', {seed})\n"
+        f"material = MaterialFieldConfig(**json.loads({json.dumps(json.dumps(dataclasses.asdict(material)))}))\n"
+        f"_step_fn(64, dataclasses.replace(physics, samples=8, block_size=8), material, '{variant}', 0)()  # load kernels\n"
+        f"step = _step_fn({n}, physics, material, '{variant}', {seed})\n"
     )
     return peak_rss_growth_mib(setup, "step()")
 
@@ -104,19 +102,19 @@ def _cases(m: int, block: int, variants: tuple[str, ...]) -> list[tuple[str, int
 def bench_cmr(config: CMRBenchConfig | None = None, log: Callable[[str], None] = print) -> dict:
     """Median forward + backward ms per (M, variant, block), and peak MiB per (N, M, variant, block)."""
     config = config or CMRBenchConfig()
-    base = config.physics
-    log(f"torch threads {torch.get_num_threads()}; width {base.width}, depth {base.depth}, activation {base.activation}, "
-        f"planes {base.spatial_resolution}^2 / {base.spatial_resolution}x{base.time_resolution} x {base.plane_channels}")
+    base, mat = config.physics, config.material
+    log(f"torch threads {torch.get_num_threads()}; width {mat.width}, depth {mat.depth}, activation {mat.activation}, "
+        f"planes {mat.spatial_resolution}^2 / {mat.spatial_resolution}x{mat.time_resolution} x {mat.plane_channels}")
     n_time = config.particles[0]
     fns: dict[str, Callable[[], None]] = {}
     for m in config.samples:
         for variant, block in _cases(m, base.block_size, config.variants):
             physics = dataclasses.replace(base, samples=m, block_size=block)
-            fns[f"M={m} {variant} block={block}"] = _step_fn(n_time, physics, variant, config.seed)
+            fns[f"M={m} {variant} block={block}"] = _step_fn(n_time, physics, mat, variant, config.seed)
     m_default = dataclasses.replace(base, samples=min(config.samples), block_size=min(config.samples))
     for n in config.particles[1:]:  # the same step with more particles: only drawing the subset grows with N
-        fns[f"N={n} M={m_default.samples} tangents"] = _step_fn(n, m_default, "tangents", config.seed)
-    medians = _interleaved_medians(fns, {name: config.repeats for name in fns})
+        fns[f"N={n} M={m_default.samples} tangents"] = _step_fn(n, m_default, mat, "tangents", config.seed)
+    medians = interleaved_medians(fns, {name: config.repeats for name in fns})
     timing = {name: 1e3 * s for name, s in medians.items()}
     log(f"forward + backward, N = {n_time} unless stated, median of {config.repeats} interleaved runs:")
     for name, ms in timing.items():
@@ -128,29 +126,15 @@ def bench_cmr(config: CMRBenchConfig | None = None, log: Callable[[str], None] =
             for variant, block in _cases(m, base.block_size, tuple(v for v in config.variants if v != "torch.func")):
                 physics = dataclasses.replace(base, samples=m, block_size=block)
                 key = f"N={n} M={m} {variant} block={block}"
-                memory[key] = measure_peak_rss(n, physics, variant, config.seed)
+                memory[key] = measure_peak_rss(n, physics, mat, variant, config.seed)
                 log(f"  {key:<44}{memory[key]:8.1f} MiB")
     return {"timing_ms": timing, "peak_mib": memory}
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--samples", type=int, nargs="+", default=list(CMRBenchConfig.samples))
-    parser.add_argument("--particles", type=int, nargs="+", default=list(CMRBenchConfig.particles))
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
-    parser.add_argument("--block-size", type=int, default=PhysicsConfig.block_size, help="blocks for checkpointing")
-    parser.add_argument("--width", type=int, default=PhysicsConfig.width)
-    parser.add_argument("--activation", default=PhysicsConfig.activation)
-    parser.add_argument("--repeats", type=int, default=CMRBenchConfig.repeats)
-    parser.add_argument("--out", type=Path)
-    args = parser.parse_args(argv)
-    physics = PhysicsConfig(kind="cmr", width=args.width, activation=args.activation, block_size=args.block_size)
-    config = CMRBenchConfig(tuple(args.samples), tuple(args.particles), tuple(args.variants), args.repeats, physics=physics)
+def run_cmr_bench(config: CMRBenchConfig, out: Path | None = None) -> dict:
+    """``pidg bench cmr``: the tables, and JSON with the config and every figure at ``out``."""
     result = bench_cmr(config)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"config": dataclasses.asdict(config), **result}, indent=2))
-
-
-if __name__ == "__main__":
-    main()
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"config": dataclasses.asdict(config), **result}, indent=2))
+    return result

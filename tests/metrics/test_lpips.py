@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from pidg.evaluation import lpips as L
-from pidg.evaluation.metrics import compute_metrics
+from pidg.metrics import lpips as L
+from pidg.metrics import compute_metrics
 
 DATA = Path(__file__).parents[2].parent / "shared" / "data" / "lpips"
 PUBLISHED = {"alex": (0.722, 0.138), "vgg": (0.569, 0.422)}  # d(ref, p0), d(ref, p1)

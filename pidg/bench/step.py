@@ -10,11 +10,12 @@ import json
 from pathlib import Path
 from typing import Callable
 
+from pidg.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pidg.config_tools import apply_overrides
 from pidg.data import load_scene
 from pidg.data.scene import parse_downscale
-from pidg.evaluation.bench_quality import VARIANTS
-from pidg.training.config import TrainConfig
+from pidg.training.config import ABLATION_VARIANTS, TrainConfig
+from pidg.training.trainer import STEP_PHASES, Trainer
 
 
 def run_step_bench(
@@ -37,8 +38,6 @@ def run_step_bench(
     of ``gaussians`` freshly initialised ones -- the realistic case: trained Gaussians are smaller and sparser
     than a random initialisation, which overlaps heavily and costs the renderer several times more.
     """
-    from pidg.training.trainer import Trainer
-
     data = dataclasses.replace(base.data, path=scene_path, progress=False)
     if downscale:
         data = dataclasses.replace(data, downscale=parse_downscale(downscale))
@@ -51,14 +50,14 @@ def run_step_bench(
     )
     trainers = {}
     for name in variants:
-        config = apply_overrides(common, VARIANTS[name])
+        config = apply_overrides(common, ABLATION_VARIANTS[name])
         config = dataclasses.replace(
             config,
             output=dataclasses.replace(config.output, dir=Path(base.output.dir) / f"bench_step_{name}", checkpoint_every=0, preview_every=0, progress=False),
         )
         trainer = Trainer(config, scene)
         if from_run is not None:
-            _load_trained_gaussians(trainer, Path(from_run) / "checkpoint.pt", log)
+            _load_trained_model(trainer, Path(from_run) / CHECKPOINT_FILE, log)
         trainer.train(warmup)
         trainer.timer.totals.clear()
         trainer.timer.steps = 0
@@ -82,24 +81,27 @@ def run_step_bench(
     return results
 
 
-def _load_trained_gaussians(trainer, checkpoint: Path, log: Callable[[str], None] = print) -> None:
+def _load_trained_model(trainer: Trainer, checkpoint: Path, log: Callable[[str], None] = print) -> None:
     """Replace a fresh trainer's Gaussians and deformation by a checkpoint's (optimiser state starts fresh).
 
     A deformation of another shape (a run trained with other grid or layer sizes) is left freshly initialised, and
     said so: the step then renders the canonical positions, which need not cost what the trained deformed ones do
     (measured: 65 instead of 35 ms of rendering on bouncingballs). Train a state with the same sizes for figures.
+    The material field, if the variant has one, stays fresh (the run's may be absent or of another variant).
     """
-    from pidg.training.checkpoint import load_checkpoint
-
     state = load_checkpoint(checkpoint)
-    trainer.load_gaussians(state["model"])
-    current = trainer.deformation.state_dict()
-    saved = state["deformation"]
-    if set(saved) == set(current) and all(saved[k].shape == current[k].shape for k in current):
-        trainer.deformation.load_state_dict(saved)
+    saved = state["model"]
+    model = trainer.model
+    model.gaussians.load_state_dict(saved["gaussians"])
+    current = model.deformation.state_dict()
+    deformation = saved["deformation"]
+    if set(deformation) == set(current) and all(deformation[k].shape == current[k].shape for k in current):
+        model.deformation.load_state_dict(deformation)
     else:
         log(f"{checkpoint}: its deformation has other sizes than the configured one; timing a fresh (untrained) deformation, not representative")
-    trainer.decoupled = bool(state.get("decoupled", False))
+    if model.material_field is not None and model.material_field.num_particles < model.gaussians.num_particles:
+        raise ValueError(f"{checkpoint}: its Gaussians descend from more particles than the fresh material field has rows")
+    trainer.reset_optimization()
     trainer.step = int(state["step"])
 
 
@@ -121,6 +123,4 @@ def format_step_table(results: dict[str, dict], title: str) -> str:
 
 
 def _phase_order(phase: str) -> int:
-    from pidg.training.trainer import STEP_PHASES
-
     return STEP_PHASES.index(phase) if phase in STEP_PHASES else len(STEP_PHASES)

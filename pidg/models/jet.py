@@ -1,8 +1,8 @@
 """A field's values and first derivatives at M points ("jet"), and a generic way to get one from any function.
 
 The residual (``pidg.physics.cmr``) only needs v, sigma and their first derivatives, so it takes a ``FieldJet``:
-the material field supplies one from its hand-written tangents, tests supply one from analytic fields through
-``jet_from_function`` (torch.func forward mode), and the two can be compared.
+the material field supplies one from its hand-written tangents, tests and benchmarks supply one from analytic
+fields through ``jet_from_function`` (torch.func forward mode), and the two can be compared.
 """
 from __future__ import annotations
 
@@ -23,7 +23,11 @@ FieldFunction = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
 
 @dataclass
 class FieldJet:
-    """Velocity and stress at M points with their derivatives (world units; t is the normalised time in [0, 1]).
+    """Velocity and stress at M points with their derivatives.
+
+    Units: x in world units; t is the dataset time in [0, 1] (the field's input); v in world units per physics
+    time unit (:class:`pidg.models.time_axis.TimeAxis`), so ``dv_dt`` is per unit of t and the residual divides it
+    by ``TimeAxis.physics_per_dataset``; sigma in (world units / physics time unit)^2 at unit density.
 
     Layout (Jacobian convention: output index first, input index last):
       v          [M, 3]

@@ -1,4 +1,8 @@
-"""Atomic checkpoints: a run never leaves a half-written file, and resuming restores every random state."""
+"""Atomic checkpoints: a run never leaves a half-written file, and resuming restores every random state.
+
+A run folder holds ``config.json`` (the resolved run config) and ``checkpoint.pt`` (a dict with ``format``, the scene
+model under ``"model"`` and, for training, everything else a resumed run needs).
+"""
 from __future__ import annotations
 
 import os
@@ -9,6 +13,10 @@ from typing import Any
 
 import numpy as np
 import torch
+
+
+CHECKPOINT_FILE = "checkpoint.pt"
+CONFIG_FILE = "config.json"
 
 
 def atomic_torch_save(obj: Any, path: Path) -> Path:

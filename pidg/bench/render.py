@@ -7,18 +7,18 @@ from __future__ import annotations
 
 import json
 import os
-import statistics
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numba
 import torch
 
-from pidg.evaluation.memory import peak_rss_growth_mib
+from pidg.bench.timing import interleaved_medians, peak_rss_growth_mib
 from pidg.render import rasterize
 from pidg.render.projection import project_gaussians
-from pidg.render.rasterize_cpu import bin_gaussians, count_pixel_gaussian_pairs
+from pidg.render.rasterize_cpu import bin_gaussians, composite_cpu, count_pixel_gaussian_pairs
+from pidg.render.rasterize_torch import composite_reference
 from pidg.render.scenes import GaussianScene, orbit_camera, random_scene
 
 
@@ -45,29 +45,10 @@ class RenderBenchConfig:
     seed: int = 0
 
 
-def _interleaved_medians(fns: dict[str, Callable[[], None]], repeats: dict[str, int]) -> dict[str, float]:
-    """Median wall time (s) of each function, measured round-robin after one warm-up call each.
-
-    The machine's capacity changes from minute to minute; interleaving makes every function see the same mix,
-    so the ratios between them are meaningful even when the absolute times drift.
-    """
-    for fn in fns.values():
-        fn()
-    times: dict[str, list[float]] = {name: [] for name in fns}
-    rounds = max(repeats.values())
-    for r in range(rounds):
-        for name, fn in fns.items():
-            if r < repeats[name]:
-                t0 = time.perf_counter()
-                fn()
-                times[name].append(time.perf_counter() - t0)
-    return {name: statistics.median(ts) for name, ts in times.items()}
-
-
 def _peak_memory_mb(n_gaussians: int, size: int, seed: int, backend: str) -> float:
     """Peak RSS growth (MiB) over one forward+backward in a fresh process (NaN if the probe fails)."""
     setup = (
-        "from pidg.evaluation.bench_render import _render_fns\n"
+        "from pidg.bench.render import _render_fns\n"
         "from pidg.render.scenes import orbit_camera, random_scene\n"
         "small = random_scene(50, orbit_camera(32, 32), seed=0)\n"
         f"_render_fns(small, 32, '{backend}')[1]()  # load kernels before the baseline\n"
@@ -106,9 +87,6 @@ def _render_fns(scene: GaussianScene, size: int, backend: str) -> tuple[Callable
 
 def _composite_fn(scene: GaussianScene, size: int, backend: str) -> Callable[[], None]:
     """Compositing alone (binning, forward, backward) on fixed projection results: what the kernel replaces."""
-    from pidg.render.rasterize_cpu import composite_cpu
-    from pidg.render.rasterize_torch import composite_reference
-
     camera = orbit_camera(size, size)
     with torch.no_grad():
         proj = project_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, camera)
@@ -157,7 +135,7 @@ def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, lo
             n = config.repeats if backend == "cpu" else config.reference_repeats
             fns.update({f"{backend}/fwd": fwd, f"{backend}/fwd_bwd": fwd_bwd, f"{backend}/composite": _composite_fn(scene, case.size, backend)})
             reps.update({f"{backend}/fwd": n, f"{backend}/fwd_bwd": n, f"{backend}/composite": n})
-        med = _interleaved_medians(fns, reps)
+        med = interleaved_medians(fns, reps)
         for backend in backends:
             peak = _peak_memory_mb(case.n_gaussians, case.size, config.seed, backend)
             row[backend] = {
@@ -199,7 +177,7 @@ def _feature_sweep(config: RenderBenchConfig, log: Callable[[str], None]) -> lis
     for n_feat in config.feature_channels:
         scene = random_scene(base_case.n_gaussians, camera, n_features=n_feat, seed=config.seed)
         fns[n_feat] = _render_fns(scene, base_case.size, "cpu")[1]
-    med = _interleaved_medians(fns, {k: config.repeats for k in fns})
+    med = interleaved_medians(fns, {k: config.repeats for k in fns})
     sweep = [{"channels": c, "forward_backward_ms": 1e3 * t} for c, t in med.items()]
     log(f"extra feature channels at case {base_case.name} (kernel fwd+bwd): "
         + ", ".join(f"C={c}: {1e3 * t:.1f} ms" for c, t in med.items()))
@@ -217,7 +195,7 @@ def _scaling(config: RenderBenchConfig, rows: list[dict], log: Callable[[str], N
         case = named[name]
         scene = random_scene(case.n_gaussians, orbit_camera(case.size, case.size), seed=config.seed)
         fns[name] = _render_fns(scene, case.size, "cpu")[1]
-    med = _interleaved_medians(fns, {"b": config.repeats, "c": config.repeats})
+    med = interleaved_medians(fns, {"b": config.repeats, "c": config.repeats})
     pairs = {r["case"]: r["pixel_gaussian_pairs"] for r in rows}
     out = {"from": "b", "to": "c", "pairs_ratio": pairs["c"] / pairs["b"], "time_ratio": med["c"] / med["b"],
            "b_ms": 1e3 * med["b"], "c_ms": 1e3 * med["c"]}
@@ -228,6 +206,4 @@ def _scaling(config: RenderBenchConfig, rows: list[dict], log: Callable[[str], N
 
 
 def _numba_threads() -> int:
-    import numba
-
     return numba.get_num_threads()

@@ -1,0 +1,29 @@
+"""What a render returns: images and the per-Gaussian projection results (one type for every backend)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class RenderOutput:
+    """Images [H, W, ...] and the per-Gaussian projection results densification needs."""
+
+    rgb: Tensor  # [H, W, 3], background included
+    alpha: Tensor  # [H, W] accumulated opacity
+    depth: Tensor  # [H, W] alpha-composited camera depth, sum_i w_i z_i (0 where nothing is drawn)
+    features: Tensor | None  # [H, W, C] extra channels composited with the same weights (no background)
+    means2d: Tensor  # [N, 2] pixel coordinates; its .grad after backward is the view-space positional gradient
+    radii: Tensor  # [N, 2] int32 pixel half-extents, 0 for culled Gaussians
+    depths: Tensor  # [N] camera-space z of the centres
+
+    @property
+    def visible(self) -> Tensor:
+        """[N] bool: Gaussians that touch the image."""
+        return (self.radii > 0).all(dim=-1)
+
+    def depth_normalized(self, eps: float = 1e-6) -> Tensor:
+        """Expected depth given that something was hit: depth / alpha (0 where alpha < eps)."""
+        return torch.where(self.alpha > eps, self.depth / self.alpha.clamp_min(eps), torch.zeros_like(self.depth))
