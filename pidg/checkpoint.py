@@ -51,14 +51,20 @@ def load_checkpoint(path: Path) -> dict:
 
 
 def random_states() -> dict:
-    """Every random generator a training step may touch."""
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    """Every random generator a training step may touch (the CUDA ones too, where there are)."""
+    states = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        states["cuda"] = torch.cuda.get_rng_state_all()
+    return states
 
 
 def restore_random_states(states: dict) -> None:
+    """Restore :func:`random_states`; CUDA states only where CUDA is (a CUDA run may resume on a CPU)."""
     torch.set_rng_state(states["torch"])
     np.random.set_state(states["numpy"])
     random.setstate(states["python"])
+    if "cuda" in states and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(states["cuda"])
 
 
 def seed_everything(seed: int) -> None:

@@ -6,6 +6,7 @@ from pidg import _env  # noqa: F401  (must precede torch)
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import get_args
@@ -17,23 +18,31 @@ from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_ben
 from pidg.bench.step import run_step_bench
 from pidg.checkpoint import CHECKPOINT_FILE
 from pidg.config_tools import MISSING_OPTION, add_config_arguments, apply_overrides, load_config, overrides_from_args
-from pidg.data import load_scene
+from pidg.data import DatasetError, dataset_layout, load_scene
+from pidg.device import Device, DeviceUnavailable, resolve_device
 from pidg.flow import run_preprocess
 from pidg.flow.config import FlowKind
 from pidg.metrics import NetName
 from pidg.models.material_field import Activation, MaterialFieldConfig
 from pidg.physics import PhysicsConfig, PhysicsKind
 from pidg.pipeline import evaluate_run, render_run, run_demo
-from pidg.training.config import ABLATION_VARIANTS, Preset, TrainConfig, apply_preset
+from pidg.training.config import ABLATION_VARIANTS, TrainConfig, apply_preset
 from pidg.training.trainer import Trainer
 
 
-def _train_config(args: argparse.Namespace) -> TrainConfig:
+def _train_config(args: argparse.Namespace, data_path: str | None = None) -> TrainConfig:
+    """The run config: a saved config.json (already resolved: no preset), or the defaults with ``--preset`` (auto
+    unless given) for the device and the dataset's layout (``data_path`` when --data.path is not given); then
+    every --section.field option."""
+    overrides = overrides_from_args(args)
     if getattr(args, "config", None):
-        base = load_config(TrainConfig, Path(args.config))  # a saved config is already resolved: no preset
-    else:
-        base = apply_preset(TrainConfig(), args.preset)
-    return apply_overrides(base, overrides_from_args(args))
+        return apply_overrides(load_config(TrainConfig, Path(args.config)), overrides)
+    first = {k: overrides[k] for k in ("device", "data.path", "preset") if k in overrides}
+    base = apply_overrides(TrainConfig(), first)
+    path = Path(str(base.data.path) or data_path or "")
+    layout = dataset_layout(path) if str(path) not in ("", ".") and path.is_dir() else None
+    base = apply_preset(base, base.preset if "preset" in overrides else "auto", layout)  # type: ignore[arg-type]
+    return apply_overrides(base, {k: v for k, v in overrides.items() if k != "preset"})
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -65,20 +74,20 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"))
+    result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"), device=args.device)
     mean = result["mean"]
     print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
     return 0
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    for path in render_run(Path(args.run), split=args.split, fps=args.fps):
+    for path in render_run(Path(args.run), split=args.split, fps=args.fps, device=args.device):
         print(f"wrote {path}")
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes, physics=args.physics, flow=args.flow)
+    run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes, physics=args.physics, flow=args.flow, device=args.device)
     return 0
 
 
@@ -94,13 +103,14 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
 
 def _cmd_bench_quality(args: argparse.Namespace) -> int:
     minutes = args.minutes if args.minutes and args.minutes > 0 else None
-    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), _train_config(args), args.downscale, minutes, args.variants)
+    config = _train_config(args, data_path=args.scenes[0])  # the preset follows the first scene's layout
+    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), config, args.downscale, minutes, args.variants)
     return 0
 
 
 def _cmd_bench_step(args: argparse.Namespace) -> int:
     run_step_bench(
-        Path(args.scene), _train_config(args), args.variants, args.downscale, args.gaussians, args.iterations,
+        Path(args.scene), _train_config(args, data_path=args.scene), args.variants, args.downscale, args.gaussians, args.iterations,
         out=Path(args.out) if args.out else None, from_run=Path(args.from_run) if args.from_run else None,
     )
     return 0
@@ -110,7 +120,7 @@ def _cmd_bench_cmr(args: argparse.Namespace) -> int:
     config = CMRBenchConfig(
         tuple(args.samples), tuple(args.particles), tuple(args.variants), args.repeats,
         physics=PhysicsConfig(kind="cmr", block_size=args.block_size),
-        material=MaterialFieldConfig(width=args.width, activation=args.activation),
+        material=MaterialFieldConfig(width=args.width, activation=args.activation), device=str(resolve_device(args.device)),
     )
     run_cmr_bench(config, Path(args.out) if args.out else None)
     return 0
@@ -126,12 +136,12 @@ def _add_run_options(parser: argparse.ArgumentParser, positional: str = "") -> N
                         help="cmr: the Cauchy momentum residual on the material field (same as --physics.kind)")
     parser.add_argument("--flow", choices=get_args(FlowKind), dest="cfg::flow.kind", default=MISSING_OPTION,
                         help="lpfm: Lagrangian particle flow matching against preprocessed optical flow (same as --flow.kind)")
-    parser.add_argument(
-        "--preset", choices=get_args(Preset), default="auto",
-        help="model sizes: paper (Grid4D as published), cpu (smaller hash tables and layers), auto = paper with CUDA, "
-        "else cpu; --section.field options override it",
-    )
-    add_config_arguments(parser, TrainConfig)
+    add_config_arguments(parser, TrainConfig)  # --preset and --device among them
+
+
+def _add_device_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", choices=get_args(Device), default="auto",
+                        help="where to compute: cuda (rendering with gsplat), cpu, or auto (CUDA when available)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -157,12 +167,14 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--split", default="test", help="train, val or test")
     ev.add_argument("--lpips", nargs="*", default=["alex", "vgg"], choices=[*get_args(NetName), "none"],
                     help="LPIPS backbones; `none` (or no value) skips LPIPS")
+    _add_device_option(ev)
     ev.set_defaults(func=_cmd_eval)
 
     rd = sub.add_parser("render", help="videos and frames of a trained run: fixed view over time, test trajectory, depth")
     rd.add_argument("run", help="the run's output folder")
     rd.add_argument("--split", default="test", help="train, val or test")
     rd.add_argument("--fps", type=int, default=24, help="frames per second of the videos over time")
+    _add_device_option(rd)
     rd.set_defaults(func=_cmd_render)
 
     demo = sub.add_parser("demo", help="train on the embedded procedural scene and write metrics, renders and a video")
@@ -171,11 +183,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--minutes", type=float, default=5.0, help="training time budget (stops early, with a checkpoint)")
     demo.add_argument("--physics", choices=get_args(PhysicsKind), default="none", help="add the Cauchy momentum residual")
     demo.add_argument("--flow", choices=get_args(FlowKind), default="none", help="add flow matching (optical flow is computed first)")
+    _add_device_option(demo)
     demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks (not tests)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
-    render = bench_sub.add_parser("render", help="rasterizer speed and memory: CPU kernel vs torch reference")
+    render = bench_sub.add_parser("render", help="rasterizer speed and memory: CPU kernel vs torch reference (CPU only)")
     render.add_argument("--repeats", type=int, default=7, help="timed repeats per case")
     render.add_argument("--out", default="outputs/bench/render.json", help="JSON with all figures ('' for none)")
     render.add_argument("--quick", action="store_true", help="tiny cases, for a smoke test")
@@ -211,14 +224,29 @@ def build_parser() -> argparse.ArgumentParser:
     cmr.add_argument("--activation", default=MaterialFieldConfig.activation, choices=get_args(Activation), help="trunk activation")
     cmr.add_argument("--repeats", type=int, default=CMRBenchConfig.repeats, help="timed repeats")
     cmr.add_argument("--out", default=None, help="JSON with all figures")
+    _add_device_option(cmr)
     cmr.set_defaults(func=_cmd_bench_cmr)
     return parser
 
 
+TRACEBACK_ENV = "PIDG_TRACEBACK"
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run a command. An error reaches the user as one line naming the input and the problem (exit status 2);
+    ``PIDG_TRACEBACK=1`` shows the whole traceback instead."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
-    return args.func(args)
+    if os.environ.get(TRACEBACK_ENV):
+        return args.func(args)
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print("pidg: interrupted", file=sys.stderr)
+        return 130
+    except (DeviceUnavailable, DatasetError, ValueError, FileNotFoundError, RuntimeError, ImportError, OSError) as err:
+        print(f"pidg {args.command}: error: {err} (set {TRACEBACK_ENV}=1 for the traceback)", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

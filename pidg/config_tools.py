@@ -164,6 +164,8 @@ def _metavar(tp: Any) -> str:
 
 
 def _default_text(f: dataclasses.Field) -> str:
+    if "command_line_default" in f.metadata:  # a field the commands fill in before the others (e.g. the preset)
+        return str(f.metadata["command_line_default"])
     if f.default is not dataclasses.MISSING:
         value = f.default
     elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]

@@ -14,6 +14,7 @@ from pidg.config_tools import apply_overrides, load_config
 from pidg.data import DataConfig, load_scene
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data.scene import Frame, SceneData
+from pidg.device import Device, describe, rasterizer_for, resolve_device
 from pidg.evaluation.evaluate import evaluate_model
 from pidg.evaluation.images import colorize_scalar, save_png
 from pidg.evaluation.video import write_video
@@ -38,23 +39,31 @@ class LoadedRun:
     scene: SceneData
 
 
-def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test")) -> LoadedRun:
-    """The scene model of a finished (or interrupted) run with its config and dataset; nothing for training is
-    built (no optimizer, no flow cache, no initialisation)."""
+def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test"), device: Device = "auto") -> LoadedRun:
+    """The scene model of a finished (or interrupted) run with its config and dataset, on ``device`` (a run trained
+    on either device loads on either); nothing for training is built (no optimizer, no flow cache, no
+    initialisation)."""
     run_dir = Path(run_dir)
     if not (run_dir / CONFIG_FILE).is_file():
         raise FileNotFoundError(f"{run_dir}: no {CONFIG_FILE} (is this a pidg run folder?)")
     config = load_config(TrainConfig, run_dir / CONFIG_FILE)
     state = load_checkpoint(run_dir / CHECKPOINT_FILE)
-    model = DynamicGaussians.from_checkpoint(state, run_dir / CHECKPOINT_FILE)
-    model.backend = config.backend
+    where = resolve_device(device)
+    # the run's rasterizer where it can run here (a run trained with the CPU kernel renders with gsplat on CUDA)
+    backend = config.backend if (config.backend, where.type) not in (("cpu", "cuda"), ("gsplat", "cpu")) else "auto"
+    rasterizer = rasterizer_for(backend, where)
+    model = DynamicGaussians.from_checkpoint(state, run_dir / CHECKPOINT_FILE).to(where)
+    model.backend = backend
+    logger.info("%s on %s, rasterizer %s", run_dir, describe(where), rasterizer)
     data = dataclasses.replace(config.data, splits=tuple(dict.fromkeys(("train",) + splits)), progress=False)
-    return LoadedRun(run_dir, config, model, int(state["step"]), load_scene(data))
+    return LoadedRun(run_dir, config, model, int(state["step"]), load_scene(data).to(where))
 
 
-def evaluate_run(run_dir: Path, split: str = "test", lpips_nets: tuple[NetName, ...] = ("alex", "vgg")) -> dict:
+def evaluate_run(
+    run_dir: Path, split: str = "test", lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), device: Device = "auto"
+) -> dict:
     """Metrics of a saved run on a split, written to RUN/eval_SPLIT/metrics.json."""
-    run = load_run(run_dir, (split,))
+    run = load_run(run_dir, (split,), device)
     return evaluate_and_save(run.model, run.scene, run.run_dir, split, lpips_nets, run.step)
 
 
@@ -71,9 +80,9 @@ def evaluate_and_save(
 
 
 @torch.no_grad()
-def render_run(run_dir: Path, split: str = "test", fps: int = 24, n_time_steps: int = 60) -> list[Path]:
+def render_run(run_dir: Path, split: str = "test", fps: int = 24, n_time_steps: int = 60, device: Device = "auto") -> list[Path]:
     """Videos of a saved run: see :func:`render_model`."""
-    run = load_run(run_dir, (split,))
+    run = load_run(run_dir, (split,), device)
     return render_model(run.model, run.scene, run.config.flow, run.run_dir, split, fps, n_time_steps)
 
 
@@ -148,7 +157,8 @@ def _render_flows(
     model: DynamicGaussians, scene: SceneData, config: FlowConfig, run_dir: Path, out_dir: Path, fps: int
 ) -> list[Path]:
     """Motion flow (target) | Gaussian flow | velocity flow for every consecutive training pair, one colour scale."""
-    cache = open_flow_cache(scene, config, run_dir / "flow_cache", progress=False)
+    frames = scene.train
+    cache = open_flow_cache(scene.to("cpu"), config, run_dir / "flow_cache", progress=False).to(frames[0].image_u8.device, frames)
     panels, errors = [], []
     for k in range(len(cache)):
         panel, err = flow_comparison(model, cache.pair(k), config)
@@ -159,9 +169,10 @@ def _render_flows(
     return [write_video(panels, out_dir / "train_flows_motion_gaussian_velocity.mp4", fps)] if panels else []
 
 
-def demo_config(data_dir: Path, run_dir: Path, iterations: int, minutes: float | None) -> TrainConfig:
-    """A short CPU schedule for the 128 px procedural scene: densify early and often, stop at 60 %."""
-    cfg = apply_preset(TrainConfig(data=DataConfig(path=data_dir, progress=False)), "cpu")
+def demo_config(data_dir: Path, run_dir: Path, iterations: int, minutes: float | None, device: Device = "auto") -> TrainConfig:
+    """A short schedule for the 128 px procedural scene, with the cpu preset's model sizes on any device: densify
+    early and often, stop at 60 %."""
+    cfg = apply_preset(TrainConfig(data=DataConfig(path=data_dir, progress=False), device=device), "cpu")
     densify_stop = max(int(0.6 * iterations), 1)
     cfg.densify = dataclasses.replace(cfg.densify, start=200, stop=densify_stop, every=100, opacity_reset_every=max(densify_stop // 2, 500))
     cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations, time_budget_minutes=minutes)  # schedules follow it
@@ -169,19 +180,22 @@ def demo_config(data_dir: Path, run_dir: Path, iterations: int, minutes: float |
     return cfg
 
 
-def run_demo(out_dir: Path, iterations: int = 1200, minutes: float | None = 5.0, physics: str = "none", flow: str = "none") -> dict:
+def run_demo(
+    out_dir: Path, iterations: int = 1200, minutes: float | None = 5.0, physics: str = "none", flow: str = "none",
+    device: Device = "auto",
+) -> dict:
     """The README's main job: generate the procedural scene, train, evaluate on held-out views, render videos."""
     out_dir = Path(out_dir)
     data_dir = write_procedural_dataset(ProceduralSceneConfig(), out_dir / "data")
     run_dir = out_dir / "run"
-    config = apply_overrides(demo_config(data_dir, run_dir, iterations, minutes), {"physics.kind": physics, "flow.kind": flow})
+    config = apply_overrides(demo_config(data_dir, run_dir, iterations, minutes, device), {"physics.kind": physics, "flow.kind": flow})
     scene: SceneData = load_scene(config.data)
     print(f"demo scene: {scene.summary()}")
     trainer = Trainer(config, scene)
     summary = trainer.train()
     nets: tuple[NetName, ...] = ("alex",) if lpips_weights_available(("alex",)) else ()
-    metrics = evaluate_and_save(trainer.model, scene, run_dir, "test", nets, trainer.step)  # the model just trained
-    videos = render_run(run_dir, "test")
+    metrics = evaluate_and_save(trainer.model, trainer.scene, run_dir, "test", nets, trainer.step)  # the model just trained
+    videos = render_run(run_dir, "test", device=device)
     result = {"train": summary, "test_mean": metrics["mean"], "render_fps": metrics["render_fps"], "videos": [str(v) for v in videos]}
     (out_dir / "demo_summary.json").write_text(json.dumps(result, indent=2))
     m = metrics["mean"]

@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "pidg"
 #: its own floor or above.
 FLOORS: list[set[str]] = [
     {"pidg._env"},  # process settings that must precede torch (the package's face imports it first)
-    {"pidg", "pidg.config_tools", "pidg.checkpoint", "pidg.render", "pidg.metrics"},
+    {"pidg", "pidg.config_tools", "pidg.checkpoint", "pidg.device", "pidg.render", "pidg.metrics"},
     {"pidg.data"},
     {"pidg.models"},
     {"pidg.physics", "pidg.flow"},

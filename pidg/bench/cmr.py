@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from pidg.bench.timing import interleaved_medians, peak_rss_growth_mib
+from pidg.device import synchronize
 from pidg.models.jet import FieldJet, jet_from_function
 from pidg.models.material_field import MaterialField, MaterialFieldConfig
 from pidg.models.time_axis import TimeAxis
@@ -39,6 +40,7 @@ class CMRBenchConfig:
     seed: int = 0
     physics: PhysicsConfig = field(default_factory=lambda: PhysicsConfig(kind="cmr"))
     material: MaterialFieldConfig = field(default_factory=MaterialFieldConfig)
+    device: str = "cpu"  # timing runs here; peak memory is measured on the CPU only
 
 
 class _TorchFuncJet:
@@ -51,13 +53,16 @@ class _TorchFuncJet:
         return jet_from_function(lambda xx, tt: self.field(xx, tt, index), x, torch.as_tensor(t, dtype=x.dtype))
 
 
-def _step_fn(n: int, physics: PhysicsConfig, material: MaterialFieldConfig, variant: str, seed: int) -> Callable[[], None]:
+def _step_fn(
+    n: int, physics: PhysicsConfig, material: MaterialFieldConfig, variant: str, seed: int, device: str = "cpu"
+) -> Callable[[], None]:
     """One training-step worth of L_CMR: sample, forward, backward into the field and the positions (a leaf
     standing in for the deformation's output, a few particles just outside the field's box)."""
     torch.manual_seed(seed)
-    field_ = MaterialField(None, n, material)
-    positions = (torch.rand(n, 3) * 2.2 - 1.1).requires_grad_(True)
-    index = torch.arange(n)
+    field_ = MaterialField(None, n, material).to(device)
+    positions = (torch.rand(n, 3) * 2.2 - 1.1).to(device).requires_grad_(True)
+    index = torch.arange(n, device=device)
+    dev = torch.device(device)
     if variant == "tangents+ckpt":
         physics = dataclasses.replace(physics, checkpoint_blocks=True)
     source = _TorchFuncJet(field_) if variant == "torch.func" else field_
@@ -69,6 +74,7 @@ def _step_fn(n: int, physics: PhysicsConfig, material: MaterialFieldConfig, vari
         cmr_loss(source, positions, 0.37, index, physics, time_axis, generator).loss.backward()
         for p in params:
             p.grad = None
+        synchronize(dev)
 
     return step
 
@@ -103,23 +109,25 @@ def bench_cmr(config: CMRBenchConfig | None = None, log: Callable[[str], None] =
     """Median forward + backward ms per (M, variant, block), and peak MiB per (N, M, variant, block)."""
     config = config or CMRBenchConfig()
     base, mat = config.physics, config.material
-    log(f"torch threads {torch.get_num_threads()}; width {mat.width}, depth {mat.depth}, activation {mat.activation}, "
+    log(f"device {config.device}, torch threads {torch.get_num_threads()}; width {mat.width}, depth {mat.depth}, activation {mat.activation}, "
         f"planes {mat.spatial_resolution}^2 / {mat.spatial_resolution}x{mat.time_resolution} x {mat.plane_channels}")
     n_time = config.particles[0]
     fns: dict[str, Callable[[], None]] = {}
     for m in config.samples:
         for variant, block in _cases(m, base.block_size, config.variants):
             physics = dataclasses.replace(base, samples=m, block_size=block)
-            fns[f"M={m} {variant} block={block}"] = _step_fn(n_time, physics, mat, variant, config.seed)
+            fns[f"M={m} {variant} block={block}"] = _step_fn(n_time, physics, mat, variant, config.seed, config.device)
     m_default = dataclasses.replace(base, samples=min(config.samples), block_size=min(config.samples))
     for n in config.particles[1:]:  # the same step with more particles: only drawing the subset grows with N
-        fns[f"N={n} M={m_default.samples} tangents"] = _step_fn(n, m_default, mat, "tangents", config.seed)
+        fns[f"N={n} M={m_default.samples} tangents"] = _step_fn(n, m_default, mat, "tangents", config.seed, config.device)
     medians = interleaved_medians(fns, {name: config.repeats for name in fns})
     timing = {name: 1e3 * s for name, s in medians.items()}
     log(f"forward + backward, N = {n_time} unless stated, median of {config.repeats} interleaved runs:")
     for name, ms in timing.items():
         log(f"  {name:<36}{ms:8.1f} ms")
     memory: dict[str, float] = {}
+    if config.device != "cpu":
+        return {"timing_ms": timing, "peak_mib": memory}
     log("peak RSS growth of one step (fresh process):")
     for n in config.particles:
         for m in config.samples:

@@ -55,9 +55,11 @@ def run_quality_bench(
             summary = trainer.train()
             flow_errors = {}
             if config.needs_material_field:
-                cache = trainer.flow_cache or open_flow_cache(scene, config.flow, run_dir / "flow_cache", progress=False)
+                cache = trainer.flow_cache or open_flow_cache(scene, config.flow, run_dir / "flow_cache", progress=False).to(
+                    trainer.device, trainer.scene.train
+                )
                 flow_errors = flow_end_point_errors(trainer.model, cache, config.flow)
-            metrics = evaluate_and_save(trainer.model, scene, run_dir, "test", nets, trainer.step)  # the model just trained
+            metrics = evaluate_and_save(trainer.model, trainer.scene, run_dir, "test", nets, trainer.step)  # the model just trained
             row = {
                 "scene": Path(path).name,
                 "variant": variant or "-",
@@ -66,6 +68,10 @@ def run_quality_bench(
                 "iterations": summary["iterations"],
                 "iterations_per_second": summary["iterations_per_second"],
                 "gaussians": summary["gaussians"],
+                "render_fps": metrics["render_fps"],
+                "device": summary["device"],
+                "peak_rss_mb": summary["peak_rss_mb"],
+                "peak_gpu_memory_mb": summary.get("peak_gpu_memory_mb"),
                 "step_breakdown_ms": summary["step_breakdown_ms"],
                 "cmr_final": summary.get("cmr_final"),
                 "velocity_flow_epe": flow_errors.get("velocity_flow_epe"),

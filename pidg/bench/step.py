@@ -73,6 +73,12 @@ def run_step_bench(
             "iterations_per_second": summary["iterations_per_second"],
             "gaussians": summary["gaussians"],
             "step_breakdown_ms": summary["step_breakdown_ms"],
+            "device": summary["device"],
+            "peak_rss_mb": summary["peak_rss_mb"],  # of the process, all variants alive
+            "peak_gpu_memory_mb": summary.get("peak_gpu_memory_mb"),
+            # at this fixed Gaussian count; a real run's count grows with densification
+            "projected_minutes": trainer.config.optim.iterations / max(summary["iterations_per_second"], 1e-9) / 60.0,
+            "projected_iterations": trainer.config.optim.iterations,
         }
     log(format_step_table(results, f"{scene.name} {scene.train[0].width}x{scene.train[0].height}"))
     if out is not None:
@@ -115,7 +121,11 @@ def format_step_table(results: dict[str, dict], title: str) -> str:
             f"{name:<10}{r['iterations_per_second']:>7.2f}{1e3 / max(r['iterations_per_second'], 1e-9):>9.1f}{r['gaussians']:>10}"
             + "".join(f"{ms.get(p, 0.0):>12.1f}" for p in phases)
         )
+    for name, r in results.items():
+        lines.append(f"  {name}: {r['projected_iterations']} iterations would take {r['projected_minutes']:.1f} min at this rate")
     first = next(iter(results.values()))
+    if first.get("peak_gpu_memory_mb") is not None:  # one process holds every variant: run one variant for its own peak
+        lines.append(f"  peak GPU memory of the bench process (all variants alive): {first['peak_gpu_memory_mb']:.0f} MB")
     for name, r in list(results.items())[1:]:
         ratio = first["iterations_per_second"] / max(r["iterations_per_second"], 1e-9)
         lines.append(f"  {name}: step time x{ratio:.2f} of {next(iter(results))}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pidg.data.blender import is_blender_dataset, read_blender
+from pidg.data.blender import blender_layout, is_blender_dataset, read_blender
 from pidg.data.hypernerf import camera_from_nerfies_json, is_hypernerf_dataset, read_hypernerf
 from pidg.data.ply import read_ply_points, write_ply_points
 from pidg.data.scene import (
@@ -34,6 +34,7 @@ __all__ = [
     "SceneData",
     "camera_from_nerfies_json",
     "compute_bounds",
+    "dataset_layout",
     "detect_format",
     "load_scene",
     "parse_downscale",
@@ -58,6 +59,12 @@ def detect_format(root: Path | str) -> str:
         "not a known dataset: expected transforms_train.json (D-NeRF / BlenderNeRF / PIDG) "
         "or dataset.json (HyperNeRF / Nerfies)",
     )
+
+
+def dataset_layout(root: Path | str) -> str:
+    """What kind of scene a folder holds: "dnerf" (synthetic, 360-degree views), "pidg" (PIDG / BlenderNeRF
+    physics scenes with masks or a point cloud, monocular orbit) or "hypernerf" (real captures)."""
+    return "hypernerf" if detect_format(root) == "hypernerf" else blender_layout(Path(root))
 
 
 def load_scene(config: DataConfig) -> SceneData:

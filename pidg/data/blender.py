@@ -64,6 +64,11 @@ def is_blender_dataset(root: Path) -> bool:
     return any(transforms_path(root, s).is_file() for s in SPLIT_NAMES)
 
 
+def blender_layout(root: Path) -> str:
+    """"pidg" for PIDG / BlenderNeRF physics scenes (motion masks or an initial point cloud), else "dnerf"."""
+    return "pidg" if ((root / "mask").is_dir() or (root / "points3d.ply").is_file()) else "dnerf"
+
+
 @dataclass(frozen=True)
 class _Intrinsics:
     """Intrinsics as the json gives them: a field of view, or focal lengths/principal point in pixels of w x h."""
@@ -292,7 +297,7 @@ def read_blender(config: DataConfig) -> SceneData:
     # Bounds from all training cameras (all frames of every split if there is no training file).
     bound_frames = json_frames["train"] if "train" in json_frames else [f for fs in json_frames.values() for f in fs]
     centers = torch.stack([f.c2w[:3, 3] for f in bound_frames])
-    info["layout"] = "pidg" if (mask_dir.is_dir() or points is not None) else "dnerf"
+    info["layout"] = blender_layout(root)
     info["masks"] = use_masks
     info["depth_maps"] = depth_dir.is_dir()
     return SceneData(

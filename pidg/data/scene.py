@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -170,6 +170,16 @@ class Frame:
     def width(self) -> int:
         return int(self.image_u8.shape[1])
 
+    def to(self, device: torch.device | str) -> "Frame":
+        """The frame with its camera, image, mask and depth on ``device`` (itself when they are there already)."""
+        if self.image_u8.device == torch.device(device):
+            return self
+
+        def move(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.to(device)
+
+        return Frame(self.camera.to(device), self.time, self.image_u8.to(device), move(self.mask), self.name, self.path, move(self.depth))
+
     @property
     def height(self) -> int:
         return int(self.image_u8.shape[0])
@@ -252,6 +262,14 @@ class SceneData:
     @property
     def name(self) -> str:
         return self.root.name
+
+    def to(self, device: torch.device | str) -> "SceneData":
+        """The scene with every frame (images stay uint8: 4x less device memory) and the background on ``device``;
+        itself on the device it is on. The point cloud stays where it is (it only seeds the Gaussians)."""
+        if self.background.device == torch.device(device):
+            return self
+        splits = {name: [frame.to(device) for frame in frames] for name, frames in self.splits.items()}
+        return replace(self, splits=splits, background=self.background.to(device))
 
     def frames(self, split: str) -> list[Frame]:
         if split not in self.splits:

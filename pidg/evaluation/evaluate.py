@@ -5,16 +5,16 @@ from __future__ import annotations
 import json
 import logging
 import math
-import resource
 import time
-from pathlib import Path
 from collections import defaultdict
+from pathlib import Path
 from typing import Callable, Sequence
 
 import torch
 from tqdm import tqdm
 
 from pidg.data.scene import Frame
+from pidg.device import peak_memory_mb, synchronize
 from pidg.evaluation.images import colorize_scalar, save_png
 from pidg.flow import FlowCache, FlowConfig, render_pair_flows
 from pidg.metrics import NetName, compute_metrics
@@ -22,11 +22,6 @@ from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import RenderOutput
 
 logger = logging.getLogger(__name__)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (Linux reports KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 @torch.no_grad()
@@ -37,18 +32,23 @@ def evaluate_views(
     lpips_nets: tuple[str, ...] = ("alex", "vgg"),
     save_images: bool = True,
     progress: bool = True,
+    device: torch.device | None = None,
 ) -> dict:
     """Render every frame, compare with its image, and summarise.
 
     Render time is measured separately from metric time (LPIPS on CPU is far slower than rendering), as
     frames per second over the split. The caller decides which model is evaluated: never pick it with these
-    numbers (test-set model selection is one of the reference code's defects).
+    numbers (test-set model selection is one of the reference code's defects). On CUDA the render time waits for
+    the GPU. Memory: peak resident memory, and on CUDA peak GPU memory, of the process so far.
     """
     per_view = []
     render_seconds = 0.0
+    device = device or (frames[0].image_u8.device if frames else torch.device("cpu"))  # where render() computes
     for i, frame in enumerate(tqdm(frames, desc="evaluating", disable=not progress)):
+        synchronize(device)
         t0 = time.perf_counter()
         out = render(frame)
+        synchronize(device)
         render_seconds += time.perf_counter() - t0
         pred = out.rgb.clamp(0, 1)
         metrics = compute_metrics(pred, frame.image.to(pred.device), lpips_nets=lpips_nets)
@@ -67,7 +67,7 @@ def evaluate_views(
         "views": len(per_view),
         "mean": mean,
         "render_fps": len(per_view) / max(render_seconds, 1e-9),
-        "peak_rss_mb": peak_rss_mb(),
+        **peak_memory_mb(device),
         "per_view": per_view,
     }
     return result
@@ -80,7 +80,9 @@ def evaluate_model(
     """:func:`evaluate_views` of the model's renders at each frame's camera and time, with its Gaussian count and
     ``info`` (facts to keep beside the metrics, e.g. the training steps); with ``out_dir``, the renders, ground
     truth and depth pictures and ``metrics.json`` go there."""
-    result = evaluate_views(lambda frame: model.render(frame.camera, frame.time), frames, out_dir, lpips_nets, progress=progress)
+    result = evaluate_views(
+        lambda frame: model.render(frame.camera, frame.time), frames, out_dir, lpips_nets, progress=progress, device=model.device
+    )
     result.update(gaussians=model.num_gaussians, **(info or {}))
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -33,7 +33,7 @@ def colorize_scalar(values: Tensor, valid: Tensor | None = None, lo: float | Non
         lo, hi = 0.0, 1.0
     t = ((v - lo) / max(hi - lo, 1e-12)).clamp(0, 1)
     # a compact viridis-like ramp: three anchor colours blended piecewise
-    anchors = torch.tensor([[0.267, 0.005, 0.329], [0.128, 0.567, 0.551], [0.993, 0.906, 0.144]])
+    anchors = torch.tensor([[0.267, 0.005, 0.329], [0.128, 0.567, 0.551], [0.993, 0.906, 0.144]], device=v.device)
     pos = t * (len(anchors) - 1)
     i0 = pos.floor().long().clamp(max=len(anchors) - 2)
     frac = (pos - i0).unsqueeze(-1)

@@ -113,6 +113,20 @@ class FlowCache:
         k = self._pair_of_id.get(id(frame), self._pair_of_name.get(frame.name))
         return None if k is None else self.pair(k)
 
+    def to(self, device: torch.device | str, frames: list[Frame] | None = None) -> "FlowCache":
+        """The cache with its flows on ``device`` and, given ``frames`` (the same scene's frames moved there, as
+        ``SceneData.to`` makes them), pairs made of those frames (matched by name)."""
+        if frames is not None:
+            by_name = {f.name: f for f in frames}
+            missing = [f.name for f in self.frames if f.name not in by_name]
+            if missing:
+                raise ValueError(f"FlowCache.to: frames {missing[:3]} of the cache are not among the given frames")
+            frames = [by_name[f.name] for f in self.frames]
+        return FlowCache(
+            self.directory, frames if frames is not None else self.frames, self.forward.to(device), self.backward.to(device),
+            self.valid_forward.to(device), self.valid_backward.to(device), self.computed, self.reused,
+        )
+
     def memory_bytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in (self.forward, self.backward, self.valid_forward, self.valid_backward))
 

@@ -73,16 +73,17 @@ def _check_inputs(
 
 
 def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cpu", "torch", "gsplat"]:
-    """Pick the backend: gsplat for CUDA tensors, the numba kernel on CPU, the torch reference on request."""
+    """Pick the backend: gsplat for CUDA tensors, the numba kernel on CPU; the torch reference on request (any
+    device: it is plain torch, the readable and slow path)."""
     if backend == "auto":
         return "gsplat" if device.type == "cuda" else "cpu"
-    if backend in ("cpu", "torch") and device.type != "cpu":
-        raise ValueError(f"rasterize: backend '{backend}' runs on CPU tensors, got tensors on {device}")
-    if backend == "gsplat" and device.type != "cuda":
-        raise ValueError("rasterize: the gsplat backend needs CUDA tensors")
     if backend not in get_args(RenderBackend):
         raise ValueError(f"rasterize: unknown backend '{backend}' ({', '.join(get_args(RenderBackend))})")
-    return backend
+    if backend == "cpu" and device.type != "cpu":
+        raise ValueError(f"rasterize: backend 'cpu' (the numba kernel) runs on CPU tensors, got tensors on {device}")
+    if backend == "gsplat" and device.type != "cuda":
+        raise ValueError("rasterize: the gsplat backend needs CUDA tensors")
+    return backend  # type: ignore[return-value]
 
 
 def rasterize(
@@ -130,7 +131,7 @@ def rasterize(
 
     proj = project_gaussians(means, quats, lin_scales, opacities, camera)
     if proj.means2d.requires_grad:
-        proj.means2d.retain_grad()
+        proj.means2d.retain_grad()  # the view-space positional gradient densification reads
     n_feat = 0 if features is None else features.shape[1]
     channels = [rgb_per_gaussian, proj.depths.unsqueeze(-1)] + ([features] if features is not None else [])
     per_gaussian = torch.cat(channels, dim=-1)  # [N, 3 + 1 + C]: colour, depth and features in one pass

@@ -150,4 +150,7 @@ class Camera:
         return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width, height=height)
 
     def to(self, device: torch.device | str) -> "Camera":
+        """The same camera with its matrix on ``device`` (itself when it is there already: no copy, no check)."""
+        if self.world_to_camera.device == torch.device(device):
+            return self
         return replace(self, world_to_camera=self.world_to_camera.to(device))

@@ -18,6 +18,20 @@ class RenderOutput:
     means2d: Tensor  # [N, 2] pixel coordinates; its .grad after backward is the view-space positional gradient
     radii: Tensor  # [N, 2] int32 pixel half-extents, 0 for culled Gaussians
     depths: Tensor  # [N] camera-space z of the centres
+    # The tensor backward writes the means2d gradient into, when it is not ``means2d`` itself: gsplat returns
+    # [1, N, 2] and its backward fills that tensor, of which ``means2d`` is a view.
+    means2d_source: Tensor | None = None
+
+    def retain_means2d_grad(self) -> None:
+        """Keep the view-space positional gradient after backward (it is not a leaf)."""
+        source = self.means2d if self.means2d_source is None else self.means2d_source
+        if source.requires_grad:
+            source.retain_grad()
+
+    def means2d_grad(self) -> Tensor | None:
+        """dL / d means2d [N, 2] in pixels after ``backward()`` (None without one): what densification thresholds."""
+        source = self.means2d if self.means2d_source is None else self.means2d_source
+        return None if source.grad is None else source.grad.reshape(-1, 2)
 
     @property
     def visible(self) -> Tensor:

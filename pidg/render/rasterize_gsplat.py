@@ -1,10 +1,13 @@
 """CUDA backend: a thin adapter over gsplat's documented ``gsplat.rasterization`` (gsplat >= 1.4).
 
-Colours arrive already evaluated (SH is done in torch by the caller) and are concatenated with the extra
-feature channels into gsplat's N-D colours; ``render_mode="RGB+D"`` appends the accumulated depth, the same
+Colours arrive already evaluated (SH is done in torch by the caller) and are concatenated with the extra feature
+channels into gsplat's N-D colours; ``render_mode="RGB+D"`` appends the accumulated depth sum_i w_i z_i, the same
 quantity the CPU backends return. The background is added here, not by gsplat, so feature channels stay
 background-free exactly as on CPU. Same conventions as ours: OpenCV world-to-camera, pixel centres at +0.5,
-0.3 px^2 dilation ("classic" mode), alpha >= 1/255 and opacity-aware radii.
+0.3 px^2 dilation ("classic" mode), alpha >= 1/255.
+
+Densification reads the view-space positional gradient where gsplat's backward writes it: ``meta["means2d"]``
+[1, N, 2] (``packed=False`` keeps it aligned with our Gaussian indices), in pixels like the CPU path's.
 """
 from __future__ import annotations
 
@@ -13,6 +16,8 @@ from torch import Tensor
 
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
+
+GSPLAT_MISSING = "the gsplat backend needs `pip install gsplat` (CUDA only)"
 
 
 def gsplat_available() -> bool:
@@ -39,8 +44,8 @@ def rasterize_gsplat(
     """Render with gsplat on CUDA; outputs match ``rasterize`` on CPU (see module docstring)."""
     try:
         from gsplat import rasterization
-    except ImportError as err:  # pragma: no cover - depends on the install
-        raise ImportError("the gsplat backend needs `pip install gsplat` (CUDA only)") from err
+    except ImportError as err:  # depends on the install; the trainer checks before it starts
+        raise ImportError(GSPLAT_MISSING) from err
 
     n_feat = 0 if features is None else features.shape[1]
     colors = rgb if features is None else torch.cat([rgb, features], dim=-1)
@@ -60,15 +65,15 @@ def rasterize_gsplat(
         far_plane=camera.far,
         eps2d=0.3,
         sh_degree=None,
-        packed=False,  # per-Gaussian [C, N, ...] outputs, aligned with our indices
+        packed=False,  # per-Gaussian [1, N, ...] outputs, aligned with our indices
         tile_size=16,
         render_mode="RGB+D",
         rasterize_mode="classic",
     )
     image, alpha = renders[0], alphas[0, ..., 0]
-    means2d = meta["means2d"][0]
-    if means2d.requires_grad:
-        means2d.retain_grad()
+    source = meta["means2d"]  # [1, N, 2]: gsplat's backward writes the positional gradient here
+    if source.requires_grad:
+        source.retain_grad()
     radii = meta["radii"][0]
     if radii.dim() == 1:  # gsplat < 1.5 returns one isotropic radius per Gaussian
         radii = radii.unsqueeze(-1).expand(-1, 2)
@@ -77,7 +82,8 @@ def rasterize_gsplat(
         alpha=alpha,
         depth=image[..., -1],
         features=image[..., 3 : 3 + n_feat] if n_feat else None,
-        means2d=means2d,
+        means2d=source[0],
         radii=radii.to(torch.int32),
         depths=meta["depths"][0],
+        means2d_source=source,
     )

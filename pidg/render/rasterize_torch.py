@@ -52,8 +52,8 @@ def composite_reference(
                 continue
             idx = idx[torch.argsort(depths.detach()[idx], stable=True)]
             ys, xs = torch.meshgrid(
-                torch.arange(y0, y1, dtype=means2d.dtype) + 0.5,
-                torch.arange(x0, x1, dtype=means2d.dtype) + 0.5,
+                torch.arange(y0, y1, dtype=means2d.dtype, device=means2d.device) + 0.5,
+                torch.arange(x0, x1, dtype=means2d.dtype, device=means2d.device) + 0.5,
                 indexing="ij",
             )
             pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)  # [P, 2]

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
-
-import torch
+from typing import Literal, get_args
 
 from pidg.config_tools import check_choices
 from pidg.data.scene import DataConfig
+from pidg.device import Device, resolve_device
 from pidg.flow.config import FlowConfig
 from pidg.models.deformation import DeformationConfig, HashGridConfig
 from pidg.models.gaussians import GaussianModelConfig
@@ -17,6 +16,10 @@ from pidg.models.material_field import MaterialFieldConfig
 from pidg.physics.config import PhysicsConfig
 from pidg.render import RenderBackend
 from pidg.training.densification import DensificationConfig
+
+
+Preset = Literal["auto", "paper", "cpu", "none"]
+DatasetLayout = Literal["dnerf", "pidg", "hypernerf"]
 
 
 @dataclass
@@ -118,8 +121,16 @@ class TrainConfig:
     """Run length, loss weights, network learning rates."""
     output: OutputConfig = field(default_factory=OutputConfig)
     """The run folder."""
+    device: Device = "auto"
+    """Where everything computes: cuda (an NVIDIA GPU, rendering with gsplat), cpu (pidg's numba kernels), auto (CUDA
+    when available). Asking for cuda without one is an error, never a silent fall-back."""
     backend: RenderBackend = "auto"
-    """Rasterizer: cpu (numba kernel), torch (reference), gsplat (CUDA), auto (by the tensors' device)."""
+    """Rasterizer: cpu (numba kernel), gsplat (CUDA), torch (the readable reference, any device; also switches the
+    SSIM loss to its torch form), auto (gsplat on CUDA, cpu on a CPU)."""
+    preset: Preset = field(default="none", metadata={"command_line_default": "auto"})
+    """Defaults the other values start from, applied before every other option: cpu (model sizes for a CPU step),
+    paper (the published schedule and sizes for the dataset's kind), auto (paper on CUDA, else cpu), none (the
+    values as listed here). The commands apply auto unless told; config.json records the preset applied."""
 
     def __post_init__(self) -> None:
         check_choices(self)
@@ -140,28 +151,50 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
     "lpfm": {"physics.kind": "none", "flow.kind": "lpfm"},  # flow matching without the momentum residual
 }
 
-Preset = Literal["auto", "paper", "cpu"]
+def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLayout | None = None) -> TrainConfig:
+    """The config with a preset's values (explicit options are applied after this, so they win).
 
-
-def apply_preset(config: TrainConfig, preset: Preset = "auto") -> TrainConfig:
-    """Model sizes for the hardware: "paper" keeps the paper's Grid4D (2^19 / 2^17-entry hash tables, width 256);
-    "cpu" shrinks what a CPU step pays for without measurable quality loss on D-NeRF at 400x400: hash tables of
-    2^16 / 2^15 entries (Adam touches every entry every step), spatial resolution up to 1024, 64-wide layers, and
-    16 instead of 32 levels on the temporal grids. Their resolutions only grow from 8 to 32 (16 along t), so 32
-    levels sit 4.6% apart; 16 levels (9% apart) cover the same range at half the lookups, and the temporal grids
-    were the largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
-    "auto" picks "paper" when CUDA is available and "cpu" otherwise. Explicit overrides are applied after this.
+    "cpu": model sizes for a CPU step, without measurable quality loss on D-NeRF at 400x400: hash tables of 2^16 /
+    2^15 entries (Adam touches every entry every step), spatial resolution up to 1024, 64-wide layers, and 16
+    instead of 32 levels on the temporal grids. Their resolutions only grow from 8 to 32 (16 along t), so 32 levels
+    sit 4.6% apart; 16 levels (9% apart) cover the same range at half the lookups, and the temporal grids were the
+    largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
+    "paper": the published model sizes (the defaults) and schedule (paper Sec. 5 and supp. A, D): 50k iterations
+    on synthetic scenes (``layout`` dnerf or pidg) and 40k on real ones (hypernerf), densification until 30k, the
+    network learning rates x0.1 every 20k steps, decoder depth 1 on real scenes, and the 0.015 scale threshold for
+    pruning on PIDG-style scenes. Without a ``layout`` it takes the synthetic schedule.
+    "auto": "paper" when ``config.device`` resolves to CUDA, else "cpu". "none": nothing.
     """
     if preset == "auto":
-        preset = "paper" if torch.cuda.is_available() else "cpu"
-    if preset == "paper":
-        return config
-    if preset != "cpu":
-        raise ValueError(f"unknown preset {preset!r}: expected auto, paper or cpu")
-    grid4d = replace(
-        config.deformation.grid4d,
-        spatial_grid=HashGridConfig(16, 2, 16, 16, 1024),
-        temporal_grid=HashGridConfig(16, 2, 15, (8, 8, 8), (32, 32, 16)),
-        width=64,
+        preset = "paper" if resolve_device(config.device).type == "cuda" else "cpu"
+    if preset not in get_args(Preset):
+        raise ValueError(f"unknown preset {preset!r}: expected one of {', '.join(get_args(Preset))}")
+    if preset == "cpu":
+        grid4d = replace(
+            config.deformation.grid4d,
+            spatial_grid=HashGridConfig(16, 2, 16, 16, 1024),
+            temporal_grid=HashGridConfig(16, 2, 15, (8, 8, 8), (32, 32, 16)),
+            width=64,
+        )
+        config = replace(config, deformation=replace(config.deformation, grid4d=grid4d))
+    elif preset == "paper":
+        real = layout == "hypernerf"
+        config = replace(
+            config,
+            optim=replace(config.optim, iterations=40_000 if real else 50_000, deformation_lr_decay_every=20_000),
+            densify=replace(config.densify, stop=30_000, prune_world_scale=0.015 if layout == "pidg" else config.densify.prune_world_scale),
+            deformation=replace(config.deformation, grid4d=replace(config.deformation.grid4d, decoder_depth=1 if real else 0)),
+        )
+    return replace(config, preset=preset)
+
+
+def describe_schedule(config: TrainConfig) -> str:
+    """One line with the values a preset sets, for the run's log."""
+    g, o, d = config.deformation.grid4d, config.optim, config.densify
+    decay = o.deformation_lr_decay_every or o.iterations
+    return (
+        f"preset {config.preset}: {o.iterations} iterations, densification {d.start}-{d.stop} every {d.every} "
+        f"(prune scale {d.prune_world_scale}), network learning rates x0.1 per {decay} steps; {config.deformation.kind} "
+        f"deformation, Grid4D tables 2^{g.spatial_grid.log2_table_size}/2^{g.temporal_grid.log2_table_size}, "
+        f"{g.temporal_grid.n_levels} temporal levels, width {g.width}, decoder depth {g.decoder_depth}"
     )
-    return replace(config, deformation=replace(config.deformation, grid4d=grid4d))

@@ -109,7 +109,7 @@ class DensificationState:
     grad_accum: Tensor  # [N] float32, sum of NDC-equivalent gradient norms over the views that saw the Gaussian
     count: Tensor  # [N] int32, views that saw it
     max_radii: Tensor  # [N] float32, largest screen radius (pixels)
-    generator: torch.Generator | None  # split sampling (None: torch's global generator)
+    generator: torch.Generator | None  # split sampling, on the CPU (None: torch's global generator)
 
     @property
     def num_gaussians(self) -> int:
@@ -241,7 +241,8 @@ def split(
     p = gaussians.params
     with torch.no_grad():
         scales = torch.exp(p["log_scales"][parents])
-        noise = torch.randn(scales.shape, generator=state.generator, device=scales.device, dtype=scales.dtype)
+        # drawn on the CPU (the sampler is a CPU generator on every device, so checkpoints move between devices)
+        noise = torch.randn(scales.shape, generator=state.generator, dtype=scales.dtype).to(scales.device)
         rot = quat_to_rotmat(p["quats"][parents])
         means = p["means"][parents] + (rot @ (noise * scales).unsqueeze(-1)).squeeze(-1)
         log_scales = torch.log(scales / scale_factor)
@@ -294,8 +295,9 @@ class DensificationStrategy:
         self.scene_extent = float(scene_extent)
 
     def initialize_state(self, num_gaussians: int, device: torch.device | str = "cpu") -> DensificationState:
-        """Zero statistics for ``num_gaussians`` Gaussians and a split sampler seeded from the config."""
-        generator = None if self.config.seed is None else torch.Generator(device=device).manual_seed(self.config.seed)
+        """Zero statistics for ``num_gaussians`` Gaussians on ``device`` and a split sampler (a CPU generator)
+        seeded from the config."""
+        generator = None if self.config.seed is None else torch.Generator().manual_seed(self.config.seed)
         zeros = torch.zeros(num_gaussians, dtype=torch.float32, device=device)
         return DensificationState(zeros, zeros.to(torch.int32), zeros.clone(), generator)
 
@@ -312,11 +314,11 @@ class DensificationStrategy:
         n = _num_rows(gaussians)
         _ensure_statistics(gaussians, state)
         for out in _outputs(render_output):
-            grad = out.means2d.grad
+            grad = out.means2d_grad()
             if grad is None:
                 continue
             if grad.shape != (n, 2):
-                raise ValueError(f"densification: means2d.grad has shape {list(grad.shape)}, the model has {n} Gaussians")
+                raise ValueError(f"densification: the means2d gradient has shape {list(grad.shape)}, the model has {n} Gaussians")
             h, w = out.rgb.shape[:2]
             w, h = width or w, height or h
             norm = (grad.detach().to(torch.float32) * grad.new_tensor([w / 2.0, h / 2.0], dtype=torch.float32)).norm(dim=-1)
@@ -330,8 +332,7 @@ class DensificationStrategy:
     def step_pre_backward(self, render_output: RenderOutput | Sequence[RenderOutput]) -> None:
         """Make sure ``means2d`` keeps its gradient (``rasterize`` already does; other producers may not)."""
         for out in _outputs(render_output):
-            if out.means2d.requires_grad:
-                out.means2d.retain_grad()
+            out.retain_means2d_grad()
 
     def step_post_backward(
         self,

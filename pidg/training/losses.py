@@ -37,12 +37,16 @@ def l1_loss(pred: Tensor, gt: Tensor) -> Tensor:
     return (pred - gt).abs().mean()
 
 
-def photometric_loss(pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2) -> tuple[Tensor, dict[str, float]]:
-    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H, W, 3] images; also returns the parts for logging."""
+def photometric_loss(
+    pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2, kernel: bool = True
+) -> tuple[Tensor, dict[str, float]]:
+    """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H, W, 3] images; also returns the parts for logging.
+
+    SSIM: the numba kernel with its analytic backward on CPU tensors (~2x faster than autograd) when ``kernel``,
+    the torch reference (zero-padded, 3DGS) otherwise and on every other device; the two agree (tests)."""
     l1 = l1_loss(pred, gt)
     if lambda_dssim > 0:
-        # the numba SSIM with its analytic backward on CPU (~2x faster than autograd), the reference elsewhere
-        value = fused_ssim(pred, gt) if pred.device.type == "cpu" else ssim(pred, gt, padding="zeros")
+        value = fused_ssim(pred, gt) if kernel and pred.device.type == "cpu" else ssim(pred, gt, padding="zeros")
         d_ssim = 1.0 - value
         total = (1.0 - lambda_dssim) * l1 + lambda_dssim * d_ssim
     else:
@@ -89,15 +93,17 @@ class LossTerm:
 
 
 class PhotometricLoss(LossTerm):
-    """(1 - lambda_c) L1 + lambda_c D-SSIM of the render against the frame (3DGS)."""
+    """(1 - lambda_c) L1 + lambda_c D-SSIM of the render against the frame (3DGS); ``kernel``: the numba SSIM on
+    CPU (False: the torch SSIM everywhere, the device-agnostic path)."""
 
     name = "photometric"
 
-    def __init__(self, lambda_dssim: float) -> None:
+    def __init__(self, lambda_dssim: float, kernel: bool = True) -> None:
         self.lambda_dssim = lambda_dssim
+        self.kernel = kernel
 
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
-        return photometric_loss(render.rgb, inputs.frame.image, self.lambda_dssim)
+        return photometric_loss(render.rgb, inputs.frame.image, self.lambda_dssim, self.kernel)
 
 
 class DeformationSmoothness(LossTerm):
@@ -202,8 +208,9 @@ class FlowMatchingLoss(LossTerm):
         """The pair's flow_gt, rebuilt when its cached depth is ``target_refresh_steps`` old."""
         cached = self._targets.get(pair.frame0.name)
         if cached is not None and step - cached.step < self.config.target_refresh_steps:
-            if cached.target is None:  # restored from a checkpoint: rebuild from the saved depth
-                cached.target = flow_target_for_pair(pair, cached.depth if cached.depth is not None else pair.frame1.depth, self.config)
+            if cached.target is None:  # restored from a checkpoint (on the CPU): rebuild from the saved depth
+                depth = pair.frame1.depth if cached.depth is None else cached.depth.to(pair.forward.device)
+                cached.target = flow_target_for_pair(pair, depth, self.config)
             return cached.target
         depth = None if pair.frame1.depth is not None else rendered_depth(model, state_t1, pair.frame1.camera)
         target = flow_target_for_pair(pair, depth if depth is not None else pair.frame1.depth, self.config)
@@ -220,7 +227,8 @@ class FlowMatchingLoss(LossTerm):
 
 def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[LossTerm]:
     """The terms a run config asks for, in summation order."""
-    terms: list[LossTerm] = [PhotometricLoss(config.optim.lambda_dssim), DeformationSmoothness(config.optim.static_warmup)]
+    kernel = config.backend != "torch"  # --backend torch: the pure-torch path everywhere (the one CUDA runs)
+    terms: list[LossTerm] = [PhotometricLoss(config.optim.lambda_dssim, kernel), DeformationSmoothness(config.optim.static_warmup)]
     if config.physics.enabled:
         terms.append(MomentumResidualLoss(config.physics, config.optim.seed + 1))
     if config.flow.enabled:

@@ -25,10 +25,11 @@ from pidg._env import retain_freed_memory
 from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE, atomic_torch_save, load_checkpoint, random_states, restore_random_states, seed_everything
 from pidg.config_tools import from_jsonable, save_config, to_jsonable
 from pidg.data.scene import Frame, SceneData
+from pidg.device import describe, peak_memory_mb, rasterizer_for, resolve_device, synchronize
 from pidg.flow import FlowCache, open_flow_cache
 from pidg.metrics import psnr
 from pidg.models.dynamic_gaussians import DynamicGaussians
-from pidg.training.config import TrainConfig
+from pidg.training.config import TrainConfig, describe_schedule
 from pidg.training.decoupling import StaticDynamicDecoupling
 from pidg.training.densification import DensificationStrategy
 from pidg.training.losses import LossTerm, StepInputs, build_loss_terms
@@ -42,17 +43,23 @@ STEP_PHASES = ("deformation", "physics", "flow", "render", "loss", "backward", "
 
 @dataclass
 class StepTimer:
-    """Wall time per phase of a training step (CPU work is synchronous, so perf_counter is exact)."""
+    """Wall time per phase of a training step. CPU work is synchronous, so perf_counter is exact there; on CUDA each
+    phase waits for its GPU work (``sync``), which costs a little speed for a true breakdown."""
 
     totals: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     steps: int = 0
+    sync: torch.device | None = None  # the CUDA device to synchronise at phase boundaries
 
     @contextmanager
     def phase(self, name: str) -> Iterator[None]:
+        if self.sync is not None:
+            synchronize(self.sync)
         t0 = time.perf_counter()
         try:
             yield
         finally:
+            if self.sync is not None:
+                synchronize(self.sync)
             self.totals[name] += time.perf_counter() - t0
 
     def breakdown_ms(self) -> dict[str, float]:
@@ -65,7 +72,8 @@ class Trainer:
 
     def __init__(self, config: TrainConfig, scene: SceneData, model: DynamicGaussians | None = None) -> None:
         self.config = config
-        self.scene = scene
+        self.device = resolve_device(config.device)
+        rasterizer = rasterizer_for(config.backend, self.device)  # before any work: a missing gsplat fails now
         retain_freed_memory()  # a step's large temporaries would otherwise be re-faulted from the OS every step
         seed_everything(config.optim.seed)
         self.extent = float(scene.bounds.extent)
@@ -73,12 +81,14 @@ class Trainer:
             scene, config.gaussians, config.deformation, config.material if config.needs_material_field else None,
             config.physics.time_scale,
         )
+        self.model.to(self.device)
         self.model.backend = config.backend
+        self.scene = scene.to(self.device)  # images stay uint8 on the device
         self.optimizers = make_optimizers(self.model, config, self.extent)
-        self.flow_cache: FlowCache | None = (
-            open_flow_cache(scene, config.flow, Path(config.output.dir) / "flow_cache", config.output.progress)
-            if config.flow.enabled else None
-        )
+        self.flow_cache: FlowCache | None = None
+        if config.flow.enabled:  # computed from the images on the CPU, then moved with the frames
+            cache = open_flow_cache(scene, config.flow, Path(config.output.dir) / "flow_cache", config.output.progress)
+            self.flow_cache = cache.to(self.device, self.scene.train)
         self.loss_terms: list[LossTerm] = build_loss_terms(config, self.flow_cache)
         self.strategy = DensificationStrategy(config.densify, self.extent)
         self.densify_state = self.strategy.initialize_state(self.model.num_gaussians, self.model.device)
@@ -87,8 +97,17 @@ class Trainer:
         self._order: list[int] = []
         self.step = 0
         self.train_seconds = 0.0
-        self.timer = StepTimer()
+        self.timer = StepTimer(sync=self.device if self.device.type == "cuda" else None)
         self.history: list[dict[str, float]] = []
+        hash_grids = getattr(self.model.deformation.config, "backend", None)
+        if hash_grids == "auto":
+            hash_grids = "numba kernel" if self.device.type == "cpu" else "torch"
+        self.hardware = {
+            "device": describe(self.device), "rasterizer": rasterizer, "hash_grids": hash_grids or "-",
+            "ssim": "numba kernel" if self.device.type == "cpu" and config.backend != "torch" else "torch",
+        }
+        logger.info("training on %s", ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in self.hardware.items()))
+        logger.info(describe_schedule(config))
 
     # ---- data -------------------------------------------------------------------------------------------
     def next_frame(self) -> Frame:
@@ -152,6 +171,8 @@ class Trainer:
         channels: list[Tensor] = []
         start = 0
         for term in terms:
+            if type(term).render_features is LossTerm.render_features:  # asks for nothing
+                continue
             with self.timer.phase(term.phase):
                 features = term.render_features(inputs)
             if features is not None:
@@ -207,6 +228,8 @@ class Trainer:
             "iterations": self.step,
             "train_minutes": self.train_seconds / 60.0,
             "iterations_per_second": self.timer.steps / max(self.train_seconds, 1e-9),
+            **self.hardware,
+            **peak_memory_mb(self.device),
             "gaussians": self.model.num_gaussians,
             "dynamic_gaussians": self.model.num_gaussians if dynamic is None else int(dynamic.sum()),
             "stopped_by_time_budget": stopped_by_budget,
@@ -227,7 +250,7 @@ class Trainer:
     def _preview(self, writer) -> None:
         frame = self.scene.train[0]
         out = self.model.render(frame.camera, frame.time)
-        image = torch.cat([out.rgb.clamp(0, 1), frame.image.to(out.rgb.device)], dim=1)
+        image = torch.cat([out.rgb.clamp(0, 1), frame.image], dim=1)
         writer.add_image("preview/render_vs_gt", image.cpu(), self.step, dataformats="HWC")
 
     # ---- checkpoints ------------------------------------------------------------------------------------

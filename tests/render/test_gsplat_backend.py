@@ -1,14 +1,84 @@
-"""gsplat (CUDA) gives the same images as the CPU kernel. Skips cleanly without CUDA and gsplat."""
+"""The gsplat (CUDA) adapter. On CPU: its plumbing against a stand-in for gsplat's documented ``rasterization``
+(built from pidg's torch reference), so the positional gradient densification reads, the radii of either gsplat
+version, depth and feature channels are checked without a GPU. On CUDA with gsplat: the same images as the CPU
+kernel."""
+import sys
+import types
+
 import pytest
 import torch
 
 from pidg.render import rasterize
-from pidg.render.rasterize_gsplat import gsplat_available
+from pidg.render.projection import project_gaussians
+from pidg.render.rasterize_gsplat import gsplat_available, rasterize_gsplat
+from pidg.render.rasterize_torch import composite_reference
 from pidg.render.scenes import orbit_camera, random_scene
 
-pytestmark = pytest.mark.skipif(not gsplat_available(), reason="gsplat backend needs CUDA and `pip install gsplat`")
+DOCUMENTED = {  # gsplat.rasterization's keyword arguments (gsplat >= 1.4 API reference)
+    "means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "width", "height", "near_plane", "far_plane",
+    "radius_clip", "eps2d", "sh_degree", "packed", "tile_size", "backgrounds", "render_mode", "sparse_grad",
+    "absgrad", "rasterize_mode", "channel_chunk", "distributed", "camera_model",
+}
 
 
+def _fake_gsplat(isotropic_radii: bool) -> types.ModuleType:
+    """A module whose ``rasterization`` follows gsplat's contract for one camera, packed=False, RGB+D: renders
+    [1, H, W, D + 1] (colours, then accumulated depth), alphas [1, H, W, 1], meta with means2d [1, N, 2] (the tensor
+    its backward fills), radii [1, N, 2] (gsplat >= 1.5) or [1, N], depths [1, N]."""
+
+    def rasterization(**kw):
+        assert set(kw) <= DOCUMENTED, set(kw) - DOCUMENTED
+        assert kw["packed"] is False and kw["render_mode"] == "RGB+D" and kw["sh_degree"] is None
+        assert kw["viewmats"].shape == (1, 4, 4) and kw["Ks"].shape == (1, 3, 3)
+        from pidg.render.camera import Camera
+
+        w2c, k = kw["viewmats"][0], kw["Ks"][0]
+        camera = Camera(
+            w2c, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), kw["width"], kw["height"], kw["near_plane"], kw["far_plane"]
+        )
+        proj = project_gaussians(kw["means"], kw["quats"], kw["scales"], kw["opacities"], camera)
+        means2d = proj.means2d[None]  # the gradient arrives here, as in gsplat
+        per = torch.cat([kw["colors"], proj.depths[:, None]], dim=-1)
+        image, alpha = composite_reference(means2d[0], proj.conics, kw["opacities"], per, proj.depths, proj.radii, kw["width"], kw["height"])
+        radii = proj.radii.max(dim=-1).values if isotropic_radii else proj.radii
+        return image[None], alpha[None, ..., None], {"means2d": means2d, "radii": radii[None], "depths": proj.depths[None]}
+
+    module = types.ModuleType("gsplat")
+    module.rasterization = rasterization
+    return module
+
+
+@pytest.mark.parametrize("isotropic_radii", [False, True])
+def test_adapter_plumbing_against_the_documented_contract(monkeypatch, isotropic_radii):
+    monkeypatch.setitem(sys.modules, "gsplat", _fake_gsplat(isotropic_radii))
+    camera = orbit_camera(40, 32)
+    scene = random_scene(300, camera, n_features=5, seed=1)
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    means = scene.means.clone().requires_grad_(True)
+    ref = rasterize(means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, features=scene.features, background=bg, backend="torch")
+    ref.retain_means2d_grad()
+    (ref.rgb.sum() + ref.features.square().sum()).backward()
+    means_b = scene.means.clone().requires_grad_(True)
+    out = rasterize_gsplat(means_b, scene.quats, scene.scales, scene.opacities, scene.colors, camera, scene.features, bg)
+    out.retain_means2d_grad()
+    (out.rgb.sum() + out.features.square().sum()).backward()
+    for name in ("rgb", "alpha", "depth", "features"):
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name), atol=1e-5, rtol=1e-5, msg=name)
+    assert out.means2d.shape == (300, 2) and out.radii.shape == (300, 2) and out.radii.dtype == torch.int32
+    assert torch.equal(out.visible, ref.visible)
+    torch.testing.assert_close(out.means2d_grad(), ref.means2d_grad(), atol=1e-6, rtol=1e-5)  # what densification reads
+    torch.testing.assert_close(means_b.grad, means.grad, atol=1e-5, rtol=1e-5)
+
+
+def test_missing_gsplat_names_the_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "gsplat", None)  # import fails
+    camera = orbit_camera(8, 8)
+    scene = random_scene(5, camera, seed=0)
+    with pytest.raises(ImportError, match="pip install gsplat"):
+        rasterize_gsplat(scene.means, scene.quats, scene.scales, scene.opacities, scene.colors, camera, None, torch.zeros(3))
+
+
+@pytest.mark.skipif(not gsplat_available(), reason="gsplat backend needs CUDA and `pip install gsplat`")
 def test_gsplat_matches_cpu_kernel():
     camera = orbit_camera(96, 64)
     scene = random_scene(500, camera, n_features=5, seed=0)
