@@ -37,16 +37,23 @@ def l1_loss(pred: Tensor, gt: Tensor) -> Tensor:
     return (pred - gt).abs().mean()
 
 
+def ssim_kernel(backend: str, device: torch.device) -> bool:
+    """Whether the photometric loss's SSIM runs as the numba kernel: on CPU tensors, unless ``--backend torch``
+    asks for the pure-torch path (the one CUDA runs)."""
+    return device.type == "cpu" and backend != "torch"
+
+
 def photometric_loss(
-    pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2, kernel: bool = True
+    pred: Tensor, gt: Tensor, lambda_dssim: float = 0.2, kernel: bool | None = None
 ) -> tuple[Tensor, dict[str, float]]:
     """(1 - lambda) * L1 + lambda * (1 - SSIM) on [H, W, 3] images; also returns the parts for logging.
 
-    SSIM: the numba kernel with its analytic backward on CPU tensors (~2x faster than autograd) when ``kernel``,
-    the torch reference (zero-padded, 3DGS) otherwise and on every other device; the two agree (tests)."""
+    SSIM: the numba kernel with its analytic backward (~2x faster than autograd) when ``kernel`` (CPU tensors only;
+    None: whenever the tensors are on the CPU), the torch reference (zero-padded, 3DGS) otherwise; the two agree."""
     l1 = l1_loss(pred, gt)
     if lambda_dssim > 0:
-        value = fused_ssim(pred, gt) if kernel and pred.device.type == "cpu" else ssim(pred, gt, padding="zeros")
+        use_kernel = pred.device.type == "cpu" if kernel is None else kernel
+        value = fused_ssim(pred, gt) if use_kernel else ssim(pred, gt, padding="zeros")
         d_ssim = 1.0 - value
         total = (1.0 - lambda_dssim) * l1 + lambda_dssim * d_ssim
     else:
@@ -93,17 +100,18 @@ class LossTerm:
 
 
 class PhotometricLoss(LossTerm):
-    """(1 - lambda_c) L1 + lambda_c D-SSIM of the render against the frame (3DGS); ``kernel``: the numba SSIM on
-    CPU (False: the torch SSIM everywhere, the device-agnostic path)."""
+    """(1 - lambda_c) L1 + lambda_c D-SSIM of the render against the frame (3DGS); the SSIM's implementation follows
+    the rasterizer ``backend`` (see :func:`ssim_kernel`)."""
 
     name = "photometric"
 
-    def __init__(self, lambda_dssim: float, kernel: bool = True) -> None:
+    def __init__(self, lambda_dssim: float, backend: str = "auto") -> None:
         self.lambda_dssim = lambda_dssim
-        self.kernel = kernel
+        self.backend = backend
 
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
-        return photometric_loss(render.rgb, inputs.frame.image, self.lambda_dssim, self.kernel)
+        kernel = ssim_kernel(self.backend, render.rgb.device)
+        return photometric_loss(render.rgb, inputs.frame.image, self.lambda_dssim, kernel)
 
 
 class DeformationSmoothness(LossTerm):
@@ -227,8 +235,7 @@ class FlowMatchingLoss(LossTerm):
 
 def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[LossTerm]:
     """The terms a run config asks for, in summation order."""
-    kernel = config.backend != "torch"  # --backend torch: the pure-torch path everywhere (the one CUDA runs)
-    terms: list[LossTerm] = [PhotometricLoss(config.optim.lambda_dssim, kernel), DeformationSmoothness(config.optim.static_warmup)]
+    terms: list[LossTerm] = [PhotometricLoss(config.optim.lambda_dssim, config.backend), DeformationSmoothness(config.optim.static_warmup)]
     if config.physics.enabled:
         terms.append(MomentumResidualLoss(config.physics, config.optim.seed + 1))
     if config.flow.enabled:

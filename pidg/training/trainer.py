@@ -32,7 +32,7 @@ from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.training.config import TrainConfig, describe_schedule
 from pidg.training.decoupling import StaticDynamicDecoupling
 from pidg.training.densification import DensificationStrategy
-from pidg.training.losses import LossTerm, StepInputs, build_loss_terms
+from pidg.training.losses import LossTerm, StepInputs, build_loss_terms, ssim_kernel
 from pidg.training.optim import make_optimizers
 
 logger = logging.getLogger(__name__)
@@ -104,7 +104,7 @@ class Trainer:
             hash_grids = "numba kernel" if self.device.type == "cpu" else "torch"
         self.hardware = {
             "device": describe(self.device), "rasterizer": rasterizer, "hash_grids": hash_grids or "-",
-            "ssim": "numba kernel" if self.device.type == "cpu" and config.backend != "torch" else "torch",
+            "ssim": "numba kernel" if ssim_kernel(config.backend, self.device) else "torch",
         }
         logger.info("training on %s", ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in self.hardware.items()))
         logger.info(describe_schedule(config))
