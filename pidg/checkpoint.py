@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 
-CHECKPOINT_FILE = "checkpoint.pt"
+CHECKPOINT_FILE = "checkpoint.pt"  # the last good state: a failure never writes here
+FAILED_CHECKPOINT_FILE = "checkpoint.failed.pt"  # the state a failed run stopped in, kept for debugging
 CONFIG_FILE = "config.json"
 
 
@@ -37,6 +38,14 @@ def atomic_torch_save(obj: Any, path: Path) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def remove_stale_temporaries(folder: Path) -> list[Path]:
+    """Delete the temporary files of atomic saves that a killed process left in ``folder``; returns them."""
+    stale = [p for p in Path(folder).glob(".*.tmp") if p.is_file()] if Path(folder).is_dir() else []
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
 
 
 def load_checkpoint(path: Path) -> dict:

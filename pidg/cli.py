@@ -6,7 +6,6 @@ from pidg import _env  # noqa: F401  (must precede torch)
 import argparse
 import json
 import logging
-import os
 import sys
 from pathlib import Path
 from typing import get_args
@@ -16,10 +15,10 @@ from pidg.bench.cmr import CMRBenchConfig, run_cmr_bench
 from pidg.bench.quality import run_quality_bench
 from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_bench
 from pidg.bench.step import run_step_bench
-from pidg.checkpoint import CHECKPOINT_FILE
+from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE
 from pidg.config_tools import MISSING_OPTION, add_config_arguments, apply_overrides, load_config, overrides_from_args
-from pidg.data import DatasetError, dataset_layout, load_scene
-from pidg.device import Device, DeviceUnavailable, resolve_device
+from pidg.data import dataset_layout, load_scene
+from pidg.device import Device, resolve_device
 from pidg.flow import run_preprocess
 from pidg.flow.config import FlowKind
 from pidg.metrics import NetName
@@ -27,6 +26,7 @@ from pidg.models.material_field import Activation, MaterialFieldConfig
 from pidg.physics import PhysicsConfig, PhysicsKind
 from pidg.pipeline import evaluate_run, render_run, run_demo
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig, apply_preset
+from pidg.training.run_folder import claim_run_folder, resume_config
 from pidg.training.trainer import Trainer
 
 
@@ -46,28 +46,41 @@ def _train_config(args: argparse.Namespace, data_path: str | None = None) -> Tra
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    config = _train_config(args)
-    if not str(config.data.path):
-        raise SystemExit("pidg train: give the dataset folder with --data.path DIR")
-    scene = load_scene(config.data)
-    checkpoint = Path(config.output.dir) / CHECKPOINT_FILE
     if args.resume:
-        if not checkpoint.is_file():
-            raise SystemExit(f"pidg train --resume: no checkpoint at {checkpoint}")
-        trainer = Trainer.from_checkpoint(checkpoint, scene, config)
-        print(f"resuming from step {trainer.step} ({checkpoint})")
+        trainer = _resumed_trainer(args)
     else:
-        trainer = Trainer(config, scene)
+        config = _train_config(args)
+        if not str(config.data.path):
+            raise ValueError("give the dataset folder with --data.path DIR")
+        claim_run_folder(config.output.dir, overwrite=args.overwrite)  # before loading anything: fail fast
+        trainer = Trainer(config, load_scene(config.data))
     summary = trainer.train()
     print(f"trained {summary['iterations']} iterations in {summary['train_minutes']:.1f} min "
-          f"({summary['iterations_per_second']:.2f} it/s), {summary['gaussians']} Gaussians -> {config.output.dir}")
+          f"({summary['iterations_per_second']:.2f} it/s), {summary['gaussians']} Gaussians -> {trainer.config.output.dir}")
     return 0
+
+
+def _resumed_trainer(args: argparse.Namespace) -> Trainer:
+    """The run in --output.dir continued with the options given now (see pidg.training.run_folder)."""
+    overrides = overrides_from_args(args)
+    if args.config or args.overwrite or "preset" in overrides:
+        raise ValueError("--resume continues a run with its saved config: --config, --overwrite and --preset do not apply")
+    run_dir = Path(overrides.get("output.dir", str(TrainConfig().output.dir)))
+    checkpoint = run_dir / CHECKPOINT_FILE
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume (give the run folder with --output.dir)")
+    config, changes = resume_config(load_config(TrainConfig, run_dir / CONFIG_FILE), overrides)
+    for name, old, new in changes:
+        print(f"resume: {name} {old} -> {new}")
+    trainer = Trainer.from_checkpoint(checkpoint, load_scene(config.data), config)
+    print(f"resuming from step {trainer.step} ({checkpoint})")
+    return trainer
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
     config = _train_config(args)
     if not str(config.data.path):
-        raise SystemExit("pidg preprocess: give the dataset folder with --data.path DIR")
+        raise ValueError("give the dataset folder with --data.path DIR")
     summary = run_preprocess(config.data, config.flow, Path(args.cache_root) if args.cache_root else None)
     print(json.dumps(summary, indent=2))
     return 0
@@ -146,12 +159,15 @@ def _add_device_option(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pidg", description="Physics-Informed Deformable Gaussian Splatting")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error (else one line)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     train = sub.add_parser("train", help="train on a dataset folder (D-NeRF, PIDG/BlenderNeRF, HyperNeRF)",
                            description="Train on a dataset folder. Every config field is an option; the resolved config "
                            "is saved as RUN/config.json.")
-    train.add_argument("--resume", action="store_true", help="continue from OUTPUT.DIR/checkpoint.pt")
+    train.add_argument("--resume", action="store_true", help="continue the run in --output.dir from its checkpoint, with its saved "
+                       "config and the options given now (changes of data or model are refused)")
+    train.add_argument("--overwrite", action="store_true", help="replace the run that --output.dir already holds")
     _add_run_options(train)
     train.set_defaults(func=_cmd_train)
 
@@ -229,23 +245,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-TRACEBACK_ENV = "PIDG_TRACEBACK"
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run a command. An error reaches the user as one line naming the input and the problem (exit status 2);
-    ``PIDG_TRACEBACK=1`` shows the whole traceback instead."""
+    ``pidg --debug ...`` shows the whole traceback instead."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
-    if os.environ.get(TRACEBACK_ENV):
+    if args.debug:
         return args.func(args)
     try:
         return args.func(args)
     except KeyboardInterrupt:
-        print("pidg: interrupted", file=sys.stderr)
+        print(f"pidg {args.command}: interrupted", file=sys.stderr)
         return 130
-    except (DeviceUnavailable, DatasetError, ValueError, FileNotFoundError, RuntimeError, ImportError, OSError) as err:
-        print(f"pidg {args.command}: error: {err} (set {TRACEBACK_ENV}=1 for the traceback)", file=sys.stderr)
+    except Exception as err:  # noqa: BLE001 - the one place every error becomes one line
+        known = isinstance(err, (ValueError, OSError, RuntimeError, ImportError, KeyError))
+        text = " ".join(str(err).split()) if known else f"{type(err).__name__}: {err}"
+        print(f"pidg {args.command}: error: {text} (pidg --debug {args.command} ... shows the traceback)", file=sys.stderr)
         return 2
 
 

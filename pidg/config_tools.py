@@ -1,9 +1,10 @@
 """Dataclass configs <-> command line and JSON, with the standard library only.
 
 One source of truth per setting: a config field's type annotation is its parser and validator (``Literal`` fields
-take their choices from the annotation, on the command line, in JSON and in ``__post_init__`` through
-:func:`check_choices`), and the string literal right below the field (the nerfstudio / tyro convention) is its
-documentation and its ``--help`` text. Every leaf field of a nested config becomes a ``--section.field VALUE``
+take their choices from the annotation; numeric fields are finite and, when annotated ``Annotated[int, Range(1)]``,
+within their range; :func:`validate_config` checks both from ``__post_init__``, so Python callers, the command line
+and saved JSON get the same checks), and the string literal right below the field (the nerfstudio / tyro
+convention) is its documentation and its ``--help`` text. Every leaf field of a nested config becomes a ``--section.field VALUE``
 option; the resolved config is written as JSON next to every run and read back by :func:`from_jsonable`, the one
 deserializer (nested dataclasses, tuples, paths, unions), so config classes need no per-class fixes for JSON.
 
@@ -21,21 +22,75 @@ import dataclasses
 import functools
 import inspect
 import json
+import math
 import textwrap
 import types
 import typing
 from pathlib import Path
-from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
+from typing import Annotated, Any, TypeVar, Union, get_args, get_origin, get_type_hints
 
 T = TypeVar("T")
 _MISSING = object()
 MISSING_OPTION = _MISSING  # default of options that override a config field only when given
 
 
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The values a numeric config field allows (``Annotated[float, Range(0, 1)]``); bounds are inclusive unless
+    ``lo_open`` / ``hi_open``; None: unbounded. Tuples of numbers are checked element by element."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def contains(self, x: float) -> bool:
+        above = self.lo is None or (x > self.lo if self.lo_open else x >= self.lo)
+        below = self.hi is None or (x < self.hi if self.hi_open else x <= self.hi)
+        return above and below
+
+    def describe(self) -> str:
+        if self.hi is None:
+            return "any number" if self.lo is None else f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        if self.lo is None:
+            return f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        return f"in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+
+
+POSITIVE = Range(0, lo_open=True)
+NON_NEGATIVE = Range(0)
+AT_LEAST_ONE = Range(1)
+UNIT = Range(0, 1)  # a share or weight in [0, 1]
+
+
 @functools.cache
 def _hints(cls: type) -> dict[str, Any]:
-    """Resolved field annotations of a class (cached: configs are validated on every construction)."""
+    """Resolved field annotations of a class, ``Annotated`` extras stripped (cached: configs are validated on
+    every construction)."""
     return get_type_hints(cls)
+
+
+@functools.cache
+def field_ranges(cls: type) -> dict[str, Range]:
+    """Field name -> its declared ``Range`` (``Annotated[..., Range(...)]``, also inside ``X | None``)."""
+    out = {}
+    for name, tp in get_type_hints(cls, include_extras=True).items():
+        candidates = [tp] + list(get_args(tp) if get_origin(tp) in (Union, types.UnionType) else [])
+        for candidate in candidates:
+            if get_origin(candidate) is Annotated:
+                out.update({name: extra for extra in candidate.__metadata__ if isinstance(extra, Range)})
+    return out
+
+
+def _numbers(value: Any) -> list[float]:
+    """The numeric leaves of a value (a number or nested tuples/lists of numbers; bools are not numbers)."""
+    if isinstance(value, bool):
+        return []
+    if isinstance(value, (int, float)):
+        return [value]
+    if isinstance(value, (tuple, list)):
+        return [x for v in value for x in _numbers(v)]
+    return []
 
 
 def _is_dataclass_type(tp: Any) -> bool:
@@ -76,17 +131,26 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def check_choices(config: Any) -> None:
-    """Raise ValueError naming the field if a ``Literal`` field holds a value its annotation does not allow.
+def validate_config(config: Any) -> None:
+    """Raise ValueError naming the field if a ``Literal`` field holds a value its annotation does not allow, a
+    number is NaN or infinite, or a number lies outside its declared ``Range``.
 
-    Config classes call it from ``__post_init__``, so Python callers get the same check as the command line.
+    Config classes call it from ``__post_init__``, so Python callers get the same checks as the command line.
     """
-    hints = _hints(type(config))
+    cls = type(config)
+    hints, ranges = _hints(cls), field_ranges(cls)
     for f in dataclasses.fields(config):
-        choices = literal_choices(hints[f.name])
         value = getattr(config, f.name)
+        where = f"{cls.__name__}.{f.name}"
+        choices = literal_choices(hints[f.name])
         if choices and value not in choices and not (value is None and _strip_optional(hints[f.name])[1]):
-            raise ValueError(f"{type(config).__name__}.{f.name} must be one of {', '.join(map(str, choices))}, got {value!r}")
+            raise ValueError(f"{where} must be one of {', '.join(map(str, choices))}, got {value!r}")
+        numbers = _numbers(value)
+        if any(isinstance(x, float) and not math.isfinite(x) for x in numbers):
+            raise ValueError(f"{where} must be a finite number, got {value!r}")
+        bounds = ranges.get(f.name)
+        if bounds is not None and not all(bounds.contains(x) for x in numbers):
+            raise ValueError(f"{where} must be {bounds.describe()}, got {value!r}")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -163,7 +227,12 @@ def _metavar(tp: Any) -> str:
     return text + ("|none" if optional and choices else "")
 
 
-def _default_text(f: dataclasses.Field) -> str:
+def _default_text(f: dataclasses.Field, owner: type) -> str:
+    bounds = field_ranges(owner).get(f.name)
+    return (f"{bounds.describe()}; " if bounds is not None else "") + f"default: {_default_value(f)}"
+
+
+def _default_value(f: dataclasses.Field) -> str:
     if "command_line_default" in f.metadata:  # a field the commands fill in before the others (e.g. the preset)
         return str(f.metadata["command_line_default"])
     if f.default is not dataclasses.MISSING:
@@ -190,7 +259,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         doc = field_docs(owner).get(f.name, "")
         groups[section].add_argument(
             f"--{name}", dest=f"cfg::{name}", default=_MISSING, metavar=_metavar(tp),
-            help=f"{doc} (default: {_default_text(f)})".strip().replace("%", "%%"),
+            help=f"{doc} ({_default_text(f, owner)})".strip().replace("%", "%%"),
         )
 
 
@@ -199,21 +268,52 @@ def undocumented_options(cls: type) -> list[str]:
     return [name for name, _, f, owner in _leaves(cls) if not field_docs(owner).get(f.name)]
 
 
+def _is_numeric(tp: Any) -> bool:
+    inner, _ = _strip_optional(tp)
+    if inner in (int, float):
+        return True
+    if get_origin(inner) in (tuple, list, Union, types.UnionType):
+        return any(_is_numeric(a) for a in get_args(inner) if a is not Ellipsis)
+    return False
+
+
+def unbounded_numeric_options(cls: type) -> list[str]:
+    """Numeric options of ``cls`` without a declared ``Range`` (the test suite keeps this empty)."""
+    return [name for name, tp, f, owner in _leaves(cls) if _is_numeric(tp) and f.name not in field_ranges(owner)]
+
+
 def overrides_from_args(args: argparse.Namespace) -> dict[str, str]:
     """The ``--a.b VALUE`` options the user actually gave."""
     return {k[len("cfg::"):]: v for k, v in vars(args).items() if k.startswith("cfg::") and v is not _MISSING}
 
 
 def apply_overrides(config: T, overrides: dict[str, str]) -> T:
-    """A copy of ``config`` with dotted-name string overrides parsed by each field's type."""
+    """A copy of ``config`` with dotted-name string overrides parsed by each field's type; an error names the
+    option and the value."""
     leaves = {name: tp for name, tp, _, _ in _leaves(type(config))}
     for name, text in overrides.items():
         if name not in leaves:
             close = [n for n in leaves if n.split(".")[-1] == name.split(".")[-1]]
             hint = f" (did you mean {', '.join(close)}?)" if close else ""
             raise ValueError(f"unknown option --{name}{hint}")
-        config = _set(config, name.split("."), parse_value(str(text), leaves[name], name))
+        value = parse_value(str(text), leaves[name], name)
+        try:
+            config = _set(config, name.split("."), value)
+        except ValueError as err:
+            raise ValueError(f"--{name} {text}: {err}") from None
     return config
+
+
+def config_differences(old: Any, new: Any) -> list[tuple[str, Any, Any]]:
+    """(dotted name, old value, new value) of every leaf field that differs between two configs of one class."""
+    out = []
+    for name, _, _, _ in _leaves(type(old)):
+        a, b = old, new
+        for part in name.split("."):
+            a, b = getattr(a, part, None), getattr(b, part, None)
+        if a != b:
+            out.append((name, a, b))
+    return out
 
 
 def _set(obj: Any, path: list[str], value: Any) -> Any:
@@ -257,6 +357,8 @@ def _from_json_value(value: Any, tp: Any, where: str) -> Any:
         return Path(value)
     if inner is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if inner in (int, float, str, bool) and (not isinstance(value, inner) or (inner is int and isinstance(value, bool))):
+        raise ValueError(f"{where}: expected {inner.__name__}, got {value!r}")
     if origin is tuple and isinstance(value, list):
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_from_json_value(v, args[0], where) for v in value)

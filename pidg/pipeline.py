@@ -23,6 +23,7 @@ from pidg.flow import FlowConfig, open_flow_cache
 from pidg.metrics import NetName, lpips_weights_available
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.training.config import TrainConfig, apply_preset
+from pidg.training.run_folder import claim_run_folder
 from pidg.training.trainer import Trainer
 
 logger = logging.getLogger(__name__)
@@ -191,6 +192,7 @@ def run_demo(
     config = apply_overrides(demo_config(data_dir, run_dir, iterations, minutes, device), {"physics.kind": physics, "flow.kind": flow})
     scene: SceneData = load_scene(config.data)
     print(f"demo scene: {scene.summary()}")
+    claim_run_folder(run_dir, overwrite=True)  # the demo's own folder: a new demo replaces the last one
     trainer = Trainer(config, scene)
     summary = trainer.train()
     nets: tuple[NetName, ...] = ("alex",) if lpips_weights_available(("alex",)) else ()

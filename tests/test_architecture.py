@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from pidg.config_tools import undocumented_options
+from pidg.config_tools import unbounded_numeric_options, undocumented_options
 from pidg.training.config import TrainConfig
 
 PACKAGE = Path(__file__).resolve().parents[1] / "pidg"
@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "pidg"
 #: Floors from the ground up; a room may import its own modules and any room on a lower floor, never a room on
 #: its own floor or above.
 FLOORS: list[set[str]] = [
-    {"pidg._env"},  # process settings that must precede torch (the package's face imports it first)
+    {"pidg._env", "pidg.errors"},  # settings that must precede torch (the package's face imports them first); errors
     {"pidg", "pidg.config_tools", "pidg.checkpoint", "pidg.device", "pidg.render", "pidg.metrics"},
     {"pidg.data"},
     {"pidg.models"},
@@ -108,5 +108,6 @@ def test_every_room_is_on_a_floor(room):
     _floor(room)
 
 
-def test_every_option_has_help():
+def test_every_option_has_help_and_every_number_a_range():
     assert undocumented_options(TrainConfig) == []
+    assert unbounded_numeric_options(TrainConfig) == []

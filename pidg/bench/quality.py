@@ -18,6 +18,7 @@ from pidg.flow import open_flow_cache
 from pidg.metrics import NetName, lpips_weights_available
 from pidg.pipeline import evaluate_and_save
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig
+from pidg.training.run_folder import claim_run_folder
 from pidg.training.trainer import Trainer
 
 
@@ -51,6 +52,7 @@ def run_quality_bench(
             config = dataclasses.replace(
                 config, data=data, optim=optim, output=dataclasses.replace(config.output, dir=run_dir)
             )
+            claim_run_folder(run_dir, overwrite=True)  # a bench replaces its own earlier runs
             trainer = Trainer(config, scene)
             summary = trainer.train()
             flow_errors = {}

@@ -15,6 +15,7 @@ from pidg.config_tools import apply_overrides
 from pidg.data import load_scene
 from pidg.data.scene import parse_downscale
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig
+from pidg.training.run_folder import claim_run_folder
 from pidg.training.trainer import STEP_PHASES, Trainer
 
 
@@ -55,6 +56,7 @@ def run_step_bench(
             config,
             output=dataclasses.replace(config.output, dir=Path(base.output.dir) / f"bench_step_{name}", checkpoint_every=0, preview_every=0, progress=False),
         )
+        claim_run_folder(config.output.dir, overwrite=True)
         trainer = Trainer(config, scene)
         if from_run is not None:
             _load_trained_model(trainer, Path(from_run) / CHECKPOINT_FILE, log)

@@ -42,7 +42,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import validate_config
 from pidg.data.io import composite_rgba_float
 from pidg.data.ply import write_ply_points
 from pidg.data.scene import Background, Frame, PointCloud, SceneData, compute_bounds
@@ -82,7 +82,7 @@ class ProceduralSceneConfig:
     n_init_points: int = 2000
 
     def __post_init__(self) -> None:
-        check_choices(self)
+        validate_config(self)
         if self.n_train < 2:
             raise ValueError(f"ProceduralSceneConfig.n_train must be >= 2, got {self.n_train}")
         if self.n_test < 1 or self.n_val < 0:

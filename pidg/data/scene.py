@@ -15,15 +15,14 @@ composite, then store an 8-bit PIL image) and the PNGs that evaluation images ar
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
 from torch import Tensor
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, validate_config
 from pidg.render.camera import Camera
 
 logger = logging.getLogger(__name__)
@@ -70,14 +69,14 @@ class DataConfig:
     """The dataset folder (D-NeRF / BlenderNeRF / PIDG: transforms_*.json; HyperNeRF / Nerfies: dataset.json)."""
     background: Background = "black"
     """Background the RGBA images are composited on and the renders are drawn over (the PIDG paper: black)."""
-    downscale: float | tuple[int, int] = 1.0
+    downscale: Annotated[float | tuple[int, int], POSITIVE] = 1.0
     """Image size: a factor (2 halves both sides) or WIDTHxHEIGHT, e.g. 400x400 for the NeRF-era D-NeRF protocol."""
     time_source: TimeSource = "json"
     """Blender-style data: json uses each frame's time; frame_number derives it from the number at the end of the
     file name, normalised over all splits (the Dry Ice scene's json times are normalised per split)."""
     splits: tuple[str, ...] = ("train", "test")
     """Splits to load, of train, val, test."""
-    max_frames: int | None = None
+    max_frames: Annotated[int, AT_LEAST_ONE] | None = None
     """Keep an evenly spaced subset of at most this many frames per split (tests, quick looks); none = all."""
     load_masks: bool = True
     """Read motion masks where the dataset ships them (they drive static/dynamic decoupling and the flow target)."""
@@ -86,29 +85,22 @@ class DataConfig:
     """Accept frames without a time: then time = index / (n - 1) within each split."""
     hypernerf_split: HyperNerfSplit = "vrig"
     """HyperNeRF / Nerfies: vrig (the second camera is the test set) or interp (every k-th frame trains)."""
-    hypernerf_image_scale: int = 2
+    hypernerf_image_scale: Annotated[int, AT_LEAST_ONE] = 2
     """HyperNeRF / Nerfies: which rgb/{1,2,4}x folder to read."""
-    hypernerf_interp_interval: int = 4
+    hypernerf_interp_interval: Annotated[int, AT_LEAST_ONE] = 4
     """HyperNeRF "interp": train on every k-th frame, test on the midpoints (an even k >= 2)."""
-    num_workers: int = 0
+    num_workers: Annotated[int, NON_NEGATIVE] = 0
     """Image-decoding threads; 0 = min(8, CPU count)."""
     progress: bool = True
     """Show a progress bar while images load."""
 
     def __post_init__(self) -> None:
-        check_choices(self)
-        if isinstance(self.downscale, tuple):
-            if len(self.downscale) != 2 or any(int(v) != v or v <= 0 for v in self.downscale):
-                raise ValueError(f"DataConfig.downscale size must be (width, height) > 0, got {self.downscale}")
-        elif not (math.isfinite(float(self.downscale)) and float(self.downscale) > 0):
-            raise ValueError(f"DataConfig.downscale factor must be > 0, got {self.downscale}")
+        validate_config(self)
+        if isinstance(self.downscale, tuple) and (len(self.downscale) != 2 or any(int(v) != v for v in self.downscale)):
+            raise ValueError(f"DataConfig.downscale size must be (width, height) in whole pixels, got {self.downscale}")
         unknown = [s for s in self.splits if s not in SPLIT_NAMES]
         if unknown or not self.splits:
             raise ValueError(f"DataConfig.splits must be a non-empty subset of {SPLIT_NAMES}, got {self.splits}")
-        if self.max_frames is not None and self.max_frames < 1:
-            raise ValueError(f"DataConfig.max_frames must be >= 1, got {self.max_frames}")
-        if self.hypernerf_image_scale < 1:
-            raise ValueError(f"DataConfig.hypernerf_image_scale must be >= 1, got {self.hypernerf_image_scale}")
         if self.hypernerf_interp_interval < 2 or self.hypernerf_interp_interval % 2:
             raise ValueError(
                 f"DataConfig.hypernerf_interp_interval must be an even number >= 2 (the test frame sits midway "

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, Range, validate_config
 
 FlowKind = Literal["none", "lpfm"]
 EstimatorName = Literal["dis", "deepflow", "tvl1", "raft"]
@@ -25,13 +25,13 @@ class FlowConfig:
 
     kind: FlowKind = "none"
     """lpfm adds Lagrangian particle flow matching against preprocessed optical flow (the full PIDG); none leaves it out."""
-    lambda_lpfm: float = 0.01
+    lambda_lpfm: Annotated[float, NON_NEGATIVE] = 0.01
     """Weight of L_LPFM in the total loss (paper: 0.01)."""
-    lambda_gaussian: float = 0.5
+    lambda_gaussian: Annotated[float, NON_NEGATIVE] = 0.5
     """lambda_g: weight of the Gaussian flow's L1 error inside L_LPFM (paper: 0.5)."""
-    lambda_velocity: float = 0.5
+    lambda_velocity: Annotated[float, NON_NEGATIVE] = 0.5
     """lambda_v: weight of the velocity flow's L1 error inside L_LPFM (paper: 0.5)."""
-    start: int = 0
+    start: Annotated[int, NON_NEGATIVE] = 0
     """First training step that uses LPFM (then every step)."""
 
     # optical flow estimation (preprocessing)
@@ -41,36 +41,28 @@ class FlowConfig:
     """OpenCV DIS preset (speed against accuracy)."""
     raft_weights: Path | None = None
     """Local RAFT weights (.pt2 export, TorchScript, or a torchvision state dict); nothing is downloaded."""
-    consistency_alpha: float = 0.01
+    consistency_alpha: Annotated[float, NON_NEGATIVE] = 0.01
     """Forward-backward check |f(p) + b(p + f(p))|^2 < alpha (|f(p)|^2 + |b(p + f(p))|^2) + beta: alpha."""
-    consistency_beta: float = 0.5
+    consistency_beta: Annotated[float, NON_NEGATIVE] = 0.5
     """The same check's beta, in pixels^2."""
     cache_dir: str = "flow_cache"
     """Where the optical flow is cached: relative to the dataset folder, or an absolute path."""
 
     # ground-truth motion flow
-    mask_dilation: int = 3
+    mask_dilation: Annotated[int, NON_NEGATIVE] = 3
     """Pixels the motion mask of frame t is dilated by (square structuring element)."""
-    motion_threshold: float = 1.0
+    motion_threshold: Annotated[float, NON_NEGATIVE] = 1.0
     """Pixels of camera-compensated flow above which a pixel counts as moving (datasets without motion masks)."""
-    min_alpha: float = 0.05
+    min_alpha: Annotated[float, Range(0, 1, hi_open=True)] = 0.05
     """Rendered alpha below which a pixel's rendered flow is not supervised."""
     # flow_gt needs frame t+1's depth, rendered by the model (a no-grad render + the decomposition, ~100-250 ms per
     # step on a CPU at 400x400). The depth of a converging model changes slowly, and each pair is visited once per
     # epoch anyway.
-    target_refresh_steps: int = 300
+    target_refresh_steps: Annotated[int, AT_LEAST_ONE] = 300
     """A pair's flow target (built with the model's rendered depth) is rebuilt when older than this many steps."""
 
     def __post_init__(self) -> None:
-        check_choices(self)
-        for name in ("lambda_lpfm", "lambda_gaussian", "lambda_velocity", "consistency_alpha", "consistency_beta",
-                     "motion_threshold", "min_alpha"):
-            if not float(getattr(self, name)) >= 0.0:
-                raise ValueError(f"FlowConfig.{name} must be >= 0, got {getattr(self, name)}")
-        if self.target_refresh_steps < 1:
-            raise ValueError(f"FlowConfig.target_refresh_steps must be >= 1, got {self.target_refresh_steps}")
-        if self.start < 0 or self.mask_dilation < 0:
-            raise ValueError(f"FlowConfig: start and mask_dilation must be >= 0, got {self.start}, {self.mask_dilation}")
+        validate_config(self)
         if not self.cache_dir:
             raise ValueError("FlowConfig.cache_dir must not be empty")
 

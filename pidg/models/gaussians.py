@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping
+from typing import Annotated, Any, Iterable, Mapping
 
 import torch
 from torch import Tensor, nn
 
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Range, validate_config
 from pidg.data.scene import PointCloud, SceneData
 from pidg.render.camera import Camera
 from pidg.render.sh import num_sh_bases, rgb_to_sh_dc
@@ -30,40 +31,33 @@ MIN_SQ_DIST = 1e-7  # 3DGS clamps the squared kNN distance here so that duplicat
 class GaussianModelConfig:
     """How Gaussians are initialised and how their colour model grows."""
 
-    sh_degree: int = 3
+    sh_degree: Annotated[int, Range(0, 3)] = 3
     """Maximum spherical-harmonics degree of the colours (0..3); coefficient tensors are sized for it."""
-    sh_degree_interval: int = 1000
+    sh_degree_interval: Annotated[int, AT_LEAST_ONE] = 1000
     """The active SH degree rises by one every this many steps (3DGS)."""
-    init_opacity: float = 0.1
+    init_opacity: Annotated[float, Range(0, 1, lo_open=True, hi_open=True)] = 0.1
     """Opacity of every initial Gaussian, in (0, 1)."""
-    knn_neighbors: int = 3
+    knn_neighbors: Annotated[int, AT_LEAST_ONE] = 3
     """Initial scale = RMS distance to this many nearest neighbours (3DGS's distCUDA2)."""
-    random_init_points: int = 100_000
+    random_init_points: Annotated[int, AT_LEAST_ONE] = 100_000
     """Points of the random initialisation, used when the scene has no point cloud (3DGS: 100k in [-1.3, 1.3]^3
     for Blender scenes)."""
-    random_init_box: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    random_init_box: Annotated[tuple[tuple[float, float, float], tuple[float, float, float]], Range()] | None = None
     """World box (min xyz, max xyz) of the random initialisation; none: a cube centred where the training cameras
     look, of half-size random_init_box_fraction x their median distance to that point."""
-    random_init_box_fraction: float = 0.33
+    random_init_box_fraction: Annotated[float, POSITIVE] = 0.33
     """Half-size of the automatic random-initialisation cube as a fraction of the camera distance (0.33 x 4.0 ~
     1.3 for D-NeRF rigs)."""
-    max_init_points: int = 0
+    max_init_points: Annotated[int, NON_NEGATIVE] = 0
     """Keep at most this many points of a dataset point cloud, a seeded random subset (0 = all). Dry Ice ships
     100k points: on a CPU a 20-30k subset trains ~3x faster per step and densification adds detail back."""
-    seed: int = 42
+    seed: Annotated[int, NON_NEGATIVE] = 42
     """Seed of the random initialisation and of the point-cloud subset."""
 
     def __post_init__(self) -> None:
-        if not 0 <= self.sh_degree <= 3:
-            raise ValueError(f"GaussianModelConfig.sh_degree must be in 0..3, got {self.sh_degree}")
-        if self.sh_degree_interval < 1:
-            raise ValueError(f"GaussianModelConfig.sh_degree_interval must be >= 1, got {self.sh_degree_interval}")
-        if not 0.0 < self.init_opacity < 1.0:
-            raise ValueError(f"GaussianModelConfig.init_opacity must be in (0, 1), got {self.init_opacity}")
-        if self.max_init_points < 0:
-            raise ValueError(f"GaussianModelConfig.max_init_points must be >= 0 (0 = all), got {self.max_init_points}")
-        if self.knn_neighbors < 1 or self.random_init_points < 1:
-            raise ValueError("GaussianModelConfig.knn_neighbors and random_init_points must be >= 1")
+        validate_config(self)
+        if self.random_init_box is not None and not all(lo < hi for lo, hi in zip(*self.random_init_box)):
+            raise ValueError(f"GaussianModelConfig.random_init_box must be (min xyz, max xyz) with min < max, got {self.random_init_box}")
 
 
 def subsample_points(points: PointCloud, max_points: int, seed: int) -> PointCloud:
@@ -432,8 +426,8 @@ class GaussianModel:
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Restore a :meth:`state_dict`; the number of Gaussians may differ from the current one.
 
-        Existing Parameter objects are kept (their data is replaced), so optimizers built on this model stay
-        attached; load their state dicts afterwards, since moments of the old size are now stale.
+        Every parameter becomes a new Parameter object (replacing ``.data`` of one that autograd has seen, with
+        another shape, breaks the next backward): build the optimizers after loading.
         """
         params, buffers = state["params"], state["buffers"]
         missing = [k for k in PARAM_NAMES if k not in params] + ([PARTICLE_INDEX] if PARTICLE_INDEX not in buffers else [])
@@ -445,12 +439,8 @@ class GaussianModel:
                 raise ValueError(f"GaussianModel.load_state_dict: {name!r} has {value.shape[0]} rows, means has {n}")
         device = self.device
         for name, value in params.items():
-            value = value.to(device)
-            if name in self.params:
-                self.params[name].data = value.clone()
-                self.params[name].grad = None
-            else:
-                self.params[name] = nn.Parameter(value.clone())
+            requires_grad = self.params[name].requires_grad if name in self.params else True
+            self.params[name] = nn.Parameter(value.to(device).clone(), requires_grad=requires_grad)
         for name in [k for k in self.params if k not in params]:
             del self.params[name]
         self.buffers.clear()

@@ -36,13 +36,14 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, Range, validate_config
+from pidg.errors import NonFiniteError
 from pidg.models.deformation.base import (
     GROUP_GRID,
     GROUP_MLP,
@@ -72,41 +73,31 @@ class MaterialFieldConfig:
 
     # Coarse planes: a bilinear lookup's derivative is piecewise constant per cell, so fine planes make the
     # velocity gradient noisy; the index embedding carries per-particle detail instead.
-    spatial_resolution: int = 32
+    spatial_resolution: Annotated[int, Range(2)] = 32
     """Cells per spatial axis of the six planes."""
-    time_resolution: int = 16
+    time_resolution: Annotated[int, Range(2)] = 16
     """Cells along t of the XT, YT, ZT planes."""
-    plane_channels: int = 8
+    plane_channels: Annotated[int, AT_LEAST_ONE] = 8
     """Feature channels per plane."""
-    time_frequencies: int = 6
+    time_frequencies: Annotated[int, NON_NEGATIVE] = 6
     """n: the Fourier time encoding sin/cos(pi 2^k (2t - 1)), k < n."""
-    embedding_dim: int = 64
+    embedding_dim: Annotated[int, AT_LEAST_ONE] = 64
     """H: size of the particle-index embedding (paper: 64)."""
-    width: int = 256
+    width: Annotated[int, AT_LEAST_ONE] = 256
     """MLP width (paper: 256)."""
-    depth: int = 2
+    depth: Annotated[int, AT_LEAST_ONE] = 2
     """Hidden layers of the shared MLP trunk (paper: 2)."""
     activation: Activation = "tanh"
     """Smooth trunk activation (the residual differentiates through its derivative, so not ReLU)."""
-    init_std: float = 0.1
+    init_std: Annotated[float, NON_NEGATIVE] = 0.1
     """Standard deviation of the initial plane and embedding values."""
-    velocity_init_scale: float = 0.01
+    velocity_init_scale: Annotated[float, NON_NEGATIVE] = 0.01
     """The velocity head starts at PyTorch's default init times this (v = sigma = 0 would be a stationary point)."""
     stress: bool = True
     """False: the paper's "no stress" ablation, sigma == 0."""
 
     def __post_init__(self) -> None:
-        check_choices(self)
-        positive = {"width": self.width, "depth": self.depth, "plane_channels": self.plane_channels, "embedding_dim": self.embedding_dim}
-        bad = {k: v for k, v in positive.items() if v < 1}
-        if bad:
-            raise ValueError(f"MaterialFieldConfig: these must be >= 1: {bad}")
-        if self.spatial_resolution < 2 or self.time_resolution < 2:
-            raise ValueError(
-                f"MaterialFieldConfig: plane resolutions must be >= 2, got {self.spatial_resolution}, {self.time_resolution}"
-            )
-        if self.time_frequencies < 0:
-            raise ValueError(f"MaterialFieldConfig: time_frequencies must be >= 0, got {self.time_frequencies}")
+        validate_config(self)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -293,9 +284,9 @@ class MaterialField(nn.Module):
             )
         if not bool(torch.isfinite(x).all()):
             bad = torch.nonzero(~torch.isfinite(x).all(dim=1)).squeeze(1)
-            raise ValueError(f"MaterialField: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
+            raise NonFiniteError(f"MaterialField: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
         if not bool(torch.isfinite(times).all()):
-            raise ValueError("MaterialField: non-finite times")
+            raise NonFiniteError("MaterialField: non-finite times")
         return x, times
 
     def _plane_coordinates(self, x: Tensor, times: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from pidg.errors import NonFiniteError
 from pidg.models.deformation.base import times_column
 from pidg.models.jet import SYMMETRIC_INDEX, FieldJet
 from pidg.models.time_axis import TimeAxis
@@ -129,7 +130,7 @@ def cmr_loss(
         raise ValueError("cmr_loss: no particles")
     if not bool(torch.isfinite(positions.detach()).all()):  # all N rows: a broken deformation, sampled or not
         bad = torch.nonzero(~torch.isfinite(positions.detach()).all(dim=1)).squeeze(1)
-        raise ValueError(f"cmr_loss: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
+        raise NonFiniteError(f"cmr_loss: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
     times = times_column(t, n, positions)
     x = positions.detach() if config.detach_positions else positions
     rows = sample_rows(n, config.samples, generator)

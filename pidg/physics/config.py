@@ -7,9 +7,9 @@ chosen and explained per field.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, validate_config
 
 PhysicsKind = Literal["none", "cmr"]
 
@@ -20,24 +20,24 @@ class PhysicsConfig:
 
     kind: PhysicsKind = "none"
     """cmr adds lambda_cmr * L_CMR to the training loss (the paper's "w/o LPFM" row); none leaves it out."""
-    lambda_cmr: float = 0.1
+    lambda_cmr: Annotated[float, NON_NEGATIVE] = 0.1
     """Weight of L_CMR in the total loss (paper: 0.1)."""
     # The paper names no warm-up. At step 0 the stress is exactly 0 and the velocity is tiny, so the residual and
     # its gradient into the positions are negligible until the field has learnt something: no warm-up needed.
-    start: int = 0
+    start: Annotated[int, NON_NEGATIVE] = 0
     """First training step at which L_CMR is applied (then on every step)."""
     # Budget: CMR may add ~30% to a ~250 ms CPU step at 20k Gaussians. At width 256, forward + backward measured
     # 53-58 ms at M = 1024 and 114-143 ms at M = 2048 on 2 shared cores (pidg bench cmr), so M = 1024, about 5%
     # of 20k Gaussians per step.
-    samples: int = 1024
+    samples: Annotated[int, AT_LEAST_ONE] = 1024
     """M: random particles per step that enter the residual (time and memory do not grow with the Gaussians)."""
-    block_size: int = 1024
+    block_size: Annotated[int, AT_LEAST_ONE] = 1024
     """Particles per block of network evaluation."""
     # Measured at M = 4096 in blocks of 1024: peak 155 -> 60 MiB for +15-30% time. Off by default: at M = 1024
     # (one block) the peak is ~40 MiB and checkpointing a single block saves nothing.
     checkpoint_blocks: bool = False
     """Recompute each block's activations in backward instead of storing them (less memory, more time)."""
-    density: float = 1.0
+    density: Annotated[float, POSITIVE] = 1.0
     """rho, in mass per world volume (paper: 1)."""
     detach_positions: bool = False
     """True: L_CMR's gradient does not flow into the deformed positions (only into the material field)."""
@@ -45,20 +45,12 @@ class PhysicsConfig:
     # residual's terms ~N^2 larger: measured on the demo scene (CMR + LPFM, 400 steps), that residual dominated the
     # flow loss and kept v at 0 (velocity-flow EPE 1.43 px = the target's size); per frame, v follows the flow
     # (EPE 0.48 px). See pidg.models.time_axis.
-    time_scale: float = 0.0
+    time_scale: Annotated[float, NON_NEGATIVE] = 0.0
     """Physics time units per unit of dataset time t in [0, 1]; 0 = one unit per training-frame interval. Sets the
     unit of the material field's velocity (world units per physics time unit) and of the residual."""
 
     def __post_init__(self) -> None:
-        check_choices(self)
-        if self.samples < 1 or self.block_size < 1:
-            raise ValueError(f"PhysicsConfig: samples and block_size must be >= 1, got {self.samples}, {self.block_size}")
-        if self.time_scale < 0:
-            raise ValueError(f"PhysicsConfig: time_scale must be >= 0 (0 = per training frame), got {self.time_scale}")
-        if self.start < 0:
-            raise ValueError(f"PhysicsConfig: start must be >= 0, got {self.start}")
-        if self.density <= 0 or self.lambda_cmr < 0:
-            raise ValueError(f"PhysicsConfig: need density > 0 and lambda_cmr >= 0, got {self.density}, {self.lambda_cmr}")
+        validate_config(self)
 
     @property
     def enabled(self) -> bool:

@@ -10,6 +10,7 @@ from typing import Literal, get_args
 import torch
 from torch import Tensor
 
+from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
 from pidg.render.projection import project_gaussians
@@ -63,7 +64,7 @@ def _check_inputs(
         # a NaN or inf anywhere makes the sum non-finite: one reduction instead of an elementwise pass per input
         if t.numel() and not torch.isfinite(t.sum()) and not torch.isfinite(t).all():
             bad = (~torch.isfinite(t)).reshape(t.shape[0], -1).any(dim=1).nonzero()[:5].flatten().tolist() if t.numel() else []
-            raise ValueError(f"rasterize: {name} contains NaN or infinite values (first bad Gaussians: {bad})")
+            raise NonFiniteError(f"rasterize: {name} contains NaN or infinite values (first bad Gaussians: {bad})")
     if (scales < 0).any():
         raise ValueError("rasterize: scales must be non-negative (pass log_scales= for log-space scales)")
     if (quats.norm(dim=-1) == 0).any():

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal, get_args
+from typing import Annotated, Literal, get_args
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, UNIT, Range, validate_config
 from pidg.data.scene import DataConfig
 from pidg.device import Device, resolve_device
 from pidg.flow.config import FlowConfig
@@ -26,59 +26,70 @@ DatasetLayout = Literal["dnerf", "pidg", "hypernerf"]
 class GaussianOptimConfig:
     """Adam learning rates of the Gaussians' parameters (3DGS defaults); positions scale with the scene extent."""
 
-    means_lr: float = 1.6e-4
+    means_lr: Annotated[float, POSITIVE] = 1.6e-4
     """Initial position learning rate, times the scene extent (3DGS's spatial_lr_scale)."""
-    means_lr_final: float = 1.6e-6
+    means_lr_final: Annotated[float, POSITIVE] = 1.6e-6
     """Final position learning rate, times the scene extent."""
-    means_lr_decay_steps: int = 0
+    means_lr_decay_steps: Annotated[int, NON_NEGATIVE] = 0
     """Steps of the log-linear decay from means_lr to means_lr_final (0: the run's iterations)."""
-    quats_lr: float = 1e-3
+    quats_lr: Annotated[float, NON_NEGATIVE] = 1e-3
     """Rotation (quaternion) learning rate."""
-    log_scales_lr: float = 5e-3
+    log_scales_lr: Annotated[float, NON_NEGATIVE] = 5e-3
     """Log-scale learning rate."""
-    opacity_lr: float = 5e-2
+    opacity_lr: Annotated[float, NON_NEGATIVE] = 5e-2
     """Opacity-logit learning rate."""
-    sh_dc_lr: float = 2.5e-3
+    sh_dc_lr: Annotated[float, NON_NEGATIVE] = 2.5e-3
     """Learning rate of the colour's SH DC term."""
-    sh_rest_lr: float = 2.5e-3 / 20.0
+    sh_rest_lr: Annotated[float, NON_NEGATIVE] = 2.5e-3 / 20.0
     """Learning rate of the higher SH bands."""
-    betas: tuple[float, float] = (0.9, 0.999)
+    betas: Annotated[tuple[float, float], Range(0, 1, hi_open=True)] = (0.9, 0.999)
     """Adam's beta1 beta2."""
-    eps: float = 1e-15
+    eps: Annotated[float, POSITIVE] = 1e-15
     """Adam's epsilon (3DGS: tiny, so that the normalised step is not damped for small-gradient parameters)."""
+
+    def __post_init__(self) -> None:
+        validate_config(self)
 
 
 @dataclass
 class OptimConfig:
     """Run length, seed, loss weights and the learning rates of the deformation and material fields."""
 
-    iterations: int = 20_000
+    iterations: Annotated[int, AT_LEAST_ONE] = 20_000
     """Training steps; learning-rate schedules span them unless their own length is set."""
-    seed: int = 42
+    seed: Annotated[int, NON_NEGATIVE] = 42
     """Seed of every random choice of the run (initialisation, frame order, samples)."""
-    lambda_dssim: float = 0.2
+    lambda_dssim: Annotated[float, UNIT] = 0.2
     """lambda_c: weight of D-SSIM against L1 in the photometric loss (3DGS, paper: 0.2)."""
-    deformation_lr: float = 2e-3
+    deformation_lr: Annotated[float, NON_NEGATIVE] = 2e-3
     """Learning rate of the deformation field's networks (paper: 2e-3); hash grids get grid_lr_factor times it."""
-    grid_lr_factor: float = 10.0
+    grid_lr_factor: Annotated[float, NON_NEGATIVE] = 10.0
     """Hash grids' learning rate over the networks' (NOTES.md: 10-50x)."""
-    deformation_lr_decay_every: int = 0
+    deformation_lr_decay_every: Annotated[int, NON_NEGATIVE] = 0
     """Network and field learning rates fall x0.1 per this many steps, applied smoothly (0: the run's iterations)."""
-    material_lr: float = 2e-3
+    material_lr: Annotated[float, NON_NEGATIVE] = 2e-3
     """Learning rate of the material field's MLP trunk and heads (paper: 2e-3)."""
-    material_grid_lr_factor: float = 10.0
+    material_grid_lr_factor: Annotated[float, NON_NEGATIVE] = 10.0
     """The material field's planes get material_lr times this (paper: 10-50x)."""
     # Each embedding row only gets a gradient when its particle is sampled (about M / N of the steps), so it gets a
     # larger step than the shared weights.
-    material_embedding_lr: float = 1e-2
+    material_embedding_lr: Annotated[float, NON_NEGATIVE] = 1e-2
     """Learning rate of the material field's particle-index embedding."""
-    static_warmup: int = 0
+    static_warmup: Annotated[int, NON_NEGATIVE] = 0
     """Steps that train the canonical Gaussians only, before the deformation starts."""
-    time_budget_minutes: float | None = None
+    time_budget_minutes: Annotated[float, POSITIVE] | None = None
     """Stop early (with a checkpoint) when this much training time has passed; none: no budget."""
-    dynamic_vote: float = 0.4
+    dynamic_vote: Annotated[float, UNIT] = 0.4
     """Static/dynamic decoupling: a Gaussian is dynamic if inside the motion mask in more than this share of the
     training views that see it."""
+    max_rollbacks: Annotated[int, NON_NEGATIVE] = 3
+    """A step with a non-finite loss, gradient or parameter rolls the run back to its last good checkpoint, at most
+    this many times; then training stops with a clear message (0: stop at the first)."""
+    rollback_lr_factor: Annotated[float, Range(0, 1, lo_open=True)] = 0.5
+    """Every learning rate is multiplied by this at each rollback (a smaller step through the divergence)."""
+
+    def __post_init__(self) -> None:
+        validate_config(self)
 
 
 @dataclass
@@ -87,14 +98,17 @@ class OutputConfig:
 
     dir: Path = Path("outputs/run")
     """The run folder: config.json, checkpoint.pt, tensorboard/, train_summary.json."""
-    checkpoint_every: int = 1000
+    checkpoint_every: Annotated[int, NON_NEGATIVE] = 1000
     """Steps between checkpoints (0: only at the end); a checkpoint is always written when training stops."""
-    log_every: int = 25
+    log_every: Annotated[int, AT_LEAST_ONE] = 25
     """Steps between logged scalars (TensorBoard, history)."""
-    preview_every: int = 1000
+    preview_every: Annotated[int, NON_NEGATIVE] = 1000
     """Steps between TensorBoard image previews of a training view (0: none)."""
     progress: bool = True
     """Show a tqdm progress bar."""
+
+    def __post_init__(self) -> None:
+        validate_config(self)
 
 
 @dataclass
@@ -133,7 +147,7 @@ class TrainConfig:
     values as listed here). The commands apply auto unless told; config.json records the preset applied."""
 
     def __post_init__(self) -> None:
-        check_choices(self)
+        validate_config(self)
 
     @property
     def needs_material_field(self) -> bool:

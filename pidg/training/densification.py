@@ -28,11 +28,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, MutableMapping, Protocol, Sequence
+from typing import Annotated, Any, Callable, Mapping, MutableMapping, Protocol, Sequence
 
 import torch
 from torch import Tensor, nn
 
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Range, validate_config
 from pidg.render import RenderOutput
 from pidg.render.projection import quat_to_rotmat
 
@@ -54,41 +55,36 @@ class DensificationConfig:
     configs. Statistics are gathered and the schedule runs while step < stop; the screen- and world-size pruning
     rules apply only after the first opacity reset (as in 3DGS), since before it large Gaussians are expected."""
 
-    start: int = 500
+    start: Annotated[int, NON_NEGATIVE] = 500
     """Densify (clone + split, then prune) at steps after this one that are multiples of every."""
-    stop: int = 15_000
+    stop: Annotated[int, NON_NEGATIVE] = 15_000
     """Last step (exclusive) of densification, its statistics and opacity resets; static/dynamic decoupling
     happens here."""
-    every: int = 100
+    every: Annotated[int, AT_LEAST_ONE] = 100
     """Steps between densification rounds."""
-    grad_threshold: float = 2e-4
+    grad_threshold: Annotated[float, NON_NEGATIVE] = 2e-4
     """Densify Gaussians whose mean NDC-equivalent view-space positional gradient reaches this (see the module)."""
-    percent_dense: float = 0.01
+    percent_dense: Annotated[float, POSITIVE] = 0.01
     """Max scale <= this x scene extent: clone; larger: split."""
-    split_samples: int = 2
+    split_samples: Annotated[int, AT_LEAST_ONE] = 2
     """Children per split Gaussian."""
-    split_scale_factor: float = 1.6
+    split_scale_factor: Annotated[float, POSITIVE] = 1.6
     """Children's scales = the parent's / this (3DGS: 0.8 x split_samples)."""
-    opacity_reset_every: int = 3000
+    opacity_reset_every: Annotated[int, AT_LEAST_ONE] = 3000
     """Steps between opacity resets."""
-    opacity_reset_value: float = 0.01
+    opacity_reset_value: Annotated[float, Range(0, 1, lo_open=True, hi_open=True)] = 0.01
     """An opacity reset clamps opacities to at most this."""
-    prune_opacity: float = 0.005
+    prune_opacity: Annotated[float, Range(0, 1, hi_open=True)] = 0.005
     """Prune Gaussians less opaque than this."""
-    prune_screen_radius: float = 20.0
+    prune_screen_radius: Annotated[float, POSITIVE] = 20.0
     """Prune Gaussians whose radius exceeded this many pixels since the last densification (after the first reset)."""
-    prune_world_scale: float = 0.1
+    prune_world_scale: Annotated[float, POSITIVE] = 0.1
     """Prune Gaussians whose max scale exceeds this x scene extent (after the first reset; PIDG scenes: 0.015)."""
-    seed: int | None = 42
+    seed: Annotated[int, NON_NEGATIVE] | None = 42
     """Seed of the split sampling; none = torch's global generator."""
 
     def __post_init__(self) -> None:
-        if self.every < 1 or self.opacity_reset_every < 1:
-            raise ValueError("DensificationConfig: every and opacity_reset_every must be >= 1")
-        if self.split_samples < 1 or self.split_scale_factor <= 0:
-            raise ValueError("DensificationConfig: split_samples must be >= 1 and split_scale_factor > 0")
-        if not 0.0 < self.opacity_reset_value < 1.0:
-            raise ValueError(f"DensificationConfig.opacity_reset_value must be in (0, 1), got {self.opacity_reset_value}")
+        validate_config(self)
 
 
 @dataclass

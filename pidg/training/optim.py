@@ -39,13 +39,23 @@ class ScheduledOptimizer:
     schedule: Schedule
     start: int = 0
 
-    def step(self, step: int) -> None:
-        """Set each group's rate for ``step``, step (once started), and clear the gradients."""
+    def step(self, step: int, lr_scale: float = 1.0) -> None:
+        """Set each group's rate for ``step`` (times ``lr_scale``, which rollbacks after a divergence lower), step
+        (once started), and clear the gradients."""
         if step >= self.start:
             for group in self.optimizer.param_groups:
-                group["lr"] = self.schedule(step, group["base_lr"])
+                lr = self.schedule(step, group["base_lr"])
+                group["lr"] = lr if lr_scale == 1.0 else lr * lr_scale
             self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore moments and step counts, but keep this optimizer's hyper-parameters (learning rates, betas,
+        eps): on resume the new config's values apply instead of being silently replaced by the saved ones."""
+        hyper = [{k: v for k, v in group.items() if k != "params"} for group in self.optimizer.param_groups]
+        self.optimizer.load_state_dict(state)
+        for group, values in zip(self.optimizer.param_groups, hyper):
+            group.update(values)
 
 
 def means_lr_at(step: int, config: GaussianOptimConfig, scene_extent: float, iterations: int) -> float:

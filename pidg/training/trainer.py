@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
+import threading
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -22,10 +24,21 @@ from torch import Tensor
 from tqdm import tqdm
 
 from pidg._env import retain_freed_memory
-from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE, atomic_torch_save, load_checkpoint, random_states, restore_random_states, seed_everything
+from pidg.checkpoint import (
+    CHECKPOINT_FILE,
+    CONFIG_FILE,
+    FAILED_CHECKPOINT_FILE,
+    atomic_torch_save,
+    load_checkpoint,
+    random_states,
+    remove_stale_temporaries,
+    restore_random_states,
+    seed_everything,
+)
 from pidg.config_tools import from_jsonable, save_config, to_jsonable
 from pidg.data.scene import Frame, SceneData
 from pidg.device import describe, peak_memory_mb, rasterizer_for, resolve_device, synchronize
+from pidg.errors import NonFiniteError, TrainingFailed
 from pidg.flow import FlowCache, open_flow_cache
 from pidg.metrics import psnr
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -97,6 +110,9 @@ class Trainer:
         self._order: list[int] = []
         self.step = 0
         self.train_seconds = 0.0
+        self.rollbacks = 0  # times a non-finite step sent the run back to its last good checkpoint
+        self.lr_scale = 1.0  # every learning rate times this (rollback_lr_factor per rollback)
+        self.last_good_step: int | None = None  # the step of the last checkpoint this trainer wrote or resumed from
         self.timer = StepTimer(sync=self.device if self.device.type == "cuda" else None)
         self.history: list[dict[str, float]] = []
         hash_grids = getattr(self.model.deformation.config, "backend", None)
@@ -146,13 +162,15 @@ class Trainer:
                 parts.update(scalars)
         assert loss is not None  # the photometric term is always active
         if not torch.isfinite(loss):
-            raise FloatingPointError(f"training diverged at step {step}: loss is {float(loss)} ({parts})")
+            raise NonFiniteError(f"the loss is {float(loss.detach())} at step {step} ({parts})")
         self.strategy.step_pre_backward(out)
         with timer.phase("backward"):
             loss.backward()
+        _check_finite("gradients", self._named_parameters(), step, grads=True)
         with timer.phase("optimizer"):
             for optimizer in self.optimizers.values():
-                optimizer.step(step)
+                optimizer.step(step, self.lr_scale)
+        _check_finite("parameters after the optimizer step", self._named_parameters(), step)
         with timer.phase("densification"):
             report = self.strategy.step_post_backward(
                 model.gaussians, self.gaussian_optimizers(), self.densify_state, step, out, frame.width, frame.height
@@ -164,6 +182,15 @@ class Trainer:
             parts["densified"] = 1.0
         self.step += 1
         return parts
+
+    def _named_parameters(self) -> list[tuple[str, Tensor]]:
+        """Every optimised tensor with a name for messages."""
+        model = self.model
+        named = [(f"gaussians.{k}", p) for k, p in model.gaussians.params.items()]
+        named += [(f"deformation.{k}", p) for k, p in model.deformation.named_parameters()]
+        if model.material_field is not None:
+            named += [(f"material_field.{k}", p) for k, p in model.material_field.named_parameters()]
+        return named
 
     def _render_features(self, terms: list[LossTerm], inputs: StepInputs) -> tuple[dict[str, slice], list[Tensor]]:
         """The extra channels the active terms want in this step's render, and which columns are whose."""
@@ -183,46 +210,108 @@ class Trainer:
 
     # ---- loop -------------------------------------------------------------------------------------------
     def train(self, iterations: int | None = None) -> dict:
-        """Train to ``iterations`` (default: the config's), checkpointing on schedule, at the end and on budget."""
+        """Train to ``iterations`` (default: the config's), checkpointing on schedule, at the end, on budget and on
+        a first Ctrl-C (after the step in progress).
+
+        A failure never writes over the last good checkpoint: a step with a non-finite loss, gradient or parameter
+        rolls back to it with smaller learning rates (``OptimConfig.max_rollbacks`` times at most); any other error,
+        or a second Ctrl-C, stops training and writes the state it stopped in to ``checkpoint.failed.pt`` beside it.
+        The run folder is written before the first step (config, a rollback point), so an unwritable folder fails
+        at once rather than after the training."""
         cfg = self.config
         out_dir = Path(cfg.output.dir)
+        checkpoint = out_dir / CHECKPOINT_FILE
         out_dir.mkdir(parents=True, exist_ok=True)
+        for stale in remove_stale_temporaries(out_dir):
+            logger.info("removed %s, left by an interrupted save", stale)
         save_config(cfg, out_dir / CONFIG_FILE)
+        if self.last_good_step is None:  # a rollback point of this run's own
+            self.save_checkpoint(checkpoint)
         total = iterations if iterations is not None else cfg.optim.iterations
         writer = _tensorboard(out_dir / "tensorboard")
         bar = tqdm(total=total, initial=self.step, desc="training", disable=not cfg.output.progress, dynamic_ncols=True)
         budget = None if cfg.optim.time_budget_minutes is None else 60.0 * cfg.optim.time_budget_minutes
-        stopped_by_budget = False
+        stopped_by = None
         try:
-            while self.step < total:
-                t0 = time.perf_counter()
-                parts = self.train_step()
-                self.train_seconds += time.perf_counter() - t0
-                if self.step % cfg.output.log_every == 0 or self.step == total:
-                    self.history.append({"step": self.step, **parts})
-                    bar.set_postfix(loss=f"{parts['loss']:.4f}", psnr=f"{parts['psnr']:.2f}", n=parts["gaussians"])
-                    if writer is not None:
-                        for key, value in parts.items():
-                            writer.add_scalar(f"train/{key}", value, self.step)
-                        writer.add_scalar("train/iterations_per_second", self.timer.steps / max(self.train_seconds, 1e-9), self.step)
-                if writer is not None and cfg.output.preview_every and self.step % cfg.output.preview_every == 0:
-                    self._preview(writer)
-                if cfg.output.checkpoint_every and self.step % cfg.output.checkpoint_every == 0:
-                    self.save_checkpoint(out_dir / CHECKPOINT_FILE)
-                bar.update(1)
-                if budget is not None and self.train_seconds >= budget:
-                    stopped_by_budget = True
-                    break
+            with _GracefulInterrupt() as interrupt:
+                while self.step < total:
+                    t0 = time.perf_counter()
+                    try:
+                        parts = self.train_step()
+                    except NonFiniteError as err:
+                        self._roll_back(checkpoint, err)
+                        bar.reset(total=total)
+                        bar.update(self.step)
+                        continue
+                    self.train_seconds += time.perf_counter() - t0
+                    if self.step % cfg.output.log_every == 0 or self.step == total:
+                        self.history.append({"step": self.step, **parts})
+                        bar.set_postfix(loss=f"{parts['loss']:.4f}", psnr=f"{parts['psnr']:.2f}", n=parts["gaussians"])
+                        if writer is not None:
+                            for key, value in parts.items():
+                                writer.add_scalar(f"train/{key}", value, self.step)
+                            writer.add_scalar("train/iterations_per_second", self.timer.steps / max(self.train_seconds, 1e-9), self.step)
+                    if writer is not None and cfg.output.preview_every and self.step % cfg.output.preview_every == 0:
+                        self._preview(writer)
+                    if cfg.output.checkpoint_every and self.step % cfg.output.checkpoint_every == 0:
+                        self.save_checkpoint(checkpoint)
+                    bar.update(1)
+                    if budget is not None and self.train_seconds >= budget:
+                        stopped_by = "time_budget"
+                        break
+                    if interrupt.requested:
+                        stopped_by = "interrupt"
+                        break
+        except KeyboardInterrupt:  # a second Ctrl-C: the step in progress may be half done
+            self._save_failed_state(out_dir)
+            raise
+        except Exception as err:
+            failed = self._save_failed_state(out_dir)
+            if isinstance(err, TrainingFailed):
+                raise
+            raise TrainingFailed(
+                f"training failed at step {self.step} ({type(err).__name__}: {err}); the last good checkpoint is "
+                f"{checkpoint} (step {self.last_good_step}), the state it failed in {failed}"
+            ) from err
         finally:
             bar.close()
-            self.save_checkpoint(out_dir / CHECKPOINT_FILE)
             if writer is not None:
                 writer.close()
-        summary = self.summary(stopped_by_budget)
+        self.save_checkpoint(checkpoint)
+        summary = self.summary(stopped_by)
         (out_dir / "train_summary.json").write_text(json.dumps(summary, indent=2))
         return summary
 
-    def summary(self, stopped_by_budget: bool = False) -> dict:
+    def _roll_back(self, checkpoint: Path, err: NonFiniteError) -> None:
+        """Back to the last good checkpoint with every learning rate times ``rollback_lr_factor``; a clear stop
+        once ``max_rollbacks`` rollbacks did not get through."""
+        cfg = self.config.optim
+        failed_step = self.step
+        if self.rollbacks >= cfg.max_rollbacks:
+            raise TrainingFailed(
+                f"training diverged at step {failed_step}: {err}; after {self.rollbacks} rollbacks to the last good "
+                f"checkpoint {checkpoint} (step {self.last_good_step}) with learning rates x{self.lr_scale:g}, it still "
+                "does: check the options (learning rates, eps) and the data"
+            )
+        rollbacks, lr_scale = self.rollbacks + 1, self.lr_scale * cfg.rollback_lr_factor
+        self.load_state_dict(load_checkpoint(checkpoint))
+        self.rollbacks, self.lr_scale = rollbacks, lr_scale
+        logger.warning(
+            "step %d: %s; rolled back to step %d (rollback %d of at most %d) with learning rates x%g",
+            failed_step, err, self.step, rollbacks, cfg.max_rollbacks, lr_scale,
+        )
+
+    def _save_failed_state(self, out_dir: Path) -> Path | None:
+        """The state training stopped in, beside (never over) the last good checkpoint; None if even that fails."""
+        path = out_dir / FAILED_CHECKPOINT_FILE
+        try:
+            atomic_torch_save({**self.state_dict(), "format": "pidg-failed-state"}, path)
+        except Exception as err:  # noqa: BLE001 - the original failure is what the user needs to see
+            logger.error("could not write the failed state to %s: %s", path, err)
+            return None
+        return path
+
+    def summary(self, stopped_by: str | None = None) -> dict:
         dynamic = self.model.dynamic_mask
         return {
             "iterations": self.step,
@@ -232,7 +321,10 @@ class Trainer:
             **peak_memory_mb(self.device),
             "gaussians": self.model.num_gaussians,
             "dynamic_gaussians": self.model.num_gaussians if dynamic is None else int(dynamic.sum()),
-            "stopped_by_time_budget": stopped_by_budget,
+            "stopped_by_time_budget": stopped_by == "time_budget",
+            "stopped_by": stopped_by,  # None (finished), "time_budget" or "interrupt"
+            "rollbacks": self.rollbacks,
+            "lr_scale": self.lr_scale,
             "step_breakdown_ms": self.timer.breakdown_ms(),
             "last": self.history[-1] if self.history else {},
             **self._loss_trace("cmr"),
@@ -269,16 +361,21 @@ class Trainer:
             "frame_order": list(self._order),
             "history": self.history,
             "timer": {"totals": dict(self.timer.totals), "steps": self.timer.steps},
+            "rollbacks": self.rollbacks,
+            "lr_scale": self.lr_scale,
         }
 
     def save_checkpoint(self, path: Path) -> Path:
-        return atomic_torch_save(self.state_dict(), path)
+        """Write the whole state atomically; it becomes the last good state (what a failure rolls back to)."""
+        atomic_torch_save(self.state_dict(), path)
+        self.last_good_step = self.step
+        return path
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a checkpoint's state into this trainer (its model must have the checkpoint's sizes)."""
         self.load_model_state(state["model"])
         for name, opt in self.optimizers.items():
-            opt.optimizer.load_state_dict(state["optimizers"][name])
+            opt.load_state_dict(state["optimizers"][name])  # moments; this config's learning rates stay
         self.densify_state.load_state_dict(state["densification"])
         for term in self.loss_terms:
             term.load_state_dict(state["loss_terms"][term.name])
@@ -290,6 +387,10 @@ class Trainer:
         self.history = list(state["history"])
         self.timer.totals = defaultdict(float, state["timer"]["totals"])
         self.timer.steps = int(state["timer"]["steps"])
+        self.rollbacks = int(state["rollbacks"])
+        self.lr_scale = float(state["lr_scale"])
+        for _, tensor in self._named_parameters():  # no gradient of a step that did not finish survives a rollback
+            tensor.grad = None
 
     def load_model_state(self, model_state: dict) -> None:
         """Take another model's values (densification changes the number of Gaussians); see reset_optimization."""
@@ -315,7 +416,44 @@ class Trainer:
         config = config or from_jsonable(TrainConfig, state["config"])
         trainer = cls(config, scene, DynamicGaussians.from_state_dict(state["model"]))
         trainer.load_state_dict(state)
+        trainer.last_good_step = trainer.step  # this run's own checkpoint: where a failure rolls back to
         return trainer
+
+
+def _check_finite(what: str, named: list[tuple[str, Tensor]], step: int, grads: bool = False) -> None:
+    """Raise NonFiniteError naming the tensors with NaN or infinite values: one fused norm per tensor, so the check
+    costs about a millisecond per step (measured at 22k Gaussians on the cpu preset: 0.7 ms for 3.6M values)."""
+    pairs = [(name, t.grad if grads else t) for name, t in named]
+    pairs = [(name, t._values() if t.is_sparse else t) for name, t in pairs if t is not None and t.numel()]
+    if not pairs:
+        return
+    norms = torch.stack(torch._foreach_norm([t.detach() for _, t in pairs]))
+    if bool(torch.isfinite(norms).all()):
+        return
+    bad = [name for (name, _), ok in zip(pairs, torch.isfinite(norms).tolist()) if not ok]
+    raise NonFiniteError(f"non-finite {what} at step {step} in {', '.join(bad[:6])}" + (" ..." if len(bad) > 6 else ""))
+
+
+class _GracefulInterrupt:
+    """While active, a first Ctrl-C asks training to stop after the step in progress (with a checkpoint); a second
+    one interrupts at once. Only the main thread can take signals: elsewhere it does nothing."""
+
+    def __enter__(self) -> "_GracefulInterrupt":
+        self.requested = False
+        self._previous = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:  # noqa: ANN001 - signal handler signature
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        logger.warning("interrupted: stopping after this step with a checkpoint (Ctrl-C again to stop at once)")
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
 
 
 def _tensorboard(log_dir: Path):

@@ -201,7 +201,7 @@ def test_bad_input_raises_clear_errors(x, t, index, error, match):
 def test_config_validation():
     with pytest.raises(ValueError, match="kind"):
         PhysicsConfig(kind="pde")  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="resolutions"):
+    with pytest.raises(ValueError, match=r"spatial_resolution must be >= 2, got 1"):
         MaterialFieldConfig(spatial_resolution=1)
     with pytest.raises(ValueError, match="activation"):
         MaterialFieldConfig(activation="relu")  # type: ignore[arg-type]

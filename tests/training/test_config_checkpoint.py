@@ -10,7 +10,7 @@ import torch
 from pidg.config_tools import (
     add_config_arguments,
     apply_overrides,
-    check_choices,
+    validate_config,
     field_docs,
     load_config,
     overrides_from_args,
@@ -97,7 +97,7 @@ class Documented:
     bare: float = 1.0
 
     def __post_init__(self) -> None:
-        check_choices(self)
+        validate_config(self)
 
 
 def test_docstrings_are_the_help_and_literals_the_choices():

@@ -11,7 +11,7 @@ from typing import Literal, get_args
 
 from torch import Tensor
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import validate_config
 from pidg.models.deformation.base import (
     GROUP_GRID,
     GROUP_MLP,
@@ -51,7 +51,7 @@ class DeformationConfig:
     """Settings of the MLP baseline (read when kind is mlp)."""
 
     def __post_init__(self) -> None:
-        check_choices(self)
+        validate_config(self)
 
     @property
     def selected(self) -> Grid4DConfig | MLPDeformationConfig | IdentityDeformationConfig:

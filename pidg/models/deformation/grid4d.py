@@ -37,12 +37,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from pidg.config_tools import check_choices
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, UNIT, Range, validate_config
 from pidg.models.deformation.base import (
     GROUP_GRID,
     GROUP_MLP,
@@ -75,41 +76,35 @@ class Grid4DConfig:
     """G_xyz, the time-independent grid behind the directional attention."""
     temporal_grid: HashGridConfig = field(default_factory=lambda: GRID4D_TEMPORAL)
     """G_xyt, G_yzt, G_xzt (one config for the three; the third axis of each is time)."""
-    width: int = 256
+    width: Annotated[int, AT_LEAST_ONE] = 256
     """Width of f_s, f_t and the decoder (paper: 256)."""
-    decoder_depth: int = 0
+    decoder_depth: Annotated[int, NON_NEGATIVE] = 0
     """Hidden Linear+ReLU layers between h and the heads (paper: 0 for synthetic scenes, 1 for real ones)."""
     spatial_relu: bool = False
     """ReLU after f_s, as the paper's text says. Off by default: Grid4D's code uses a bare Linear, which lets
     a = 2 sigmoid - 1 be negative, while the ReLU confines a to [0, 1), contradicting the text's own a in (-1, 1)."""
-    time_margin: float = 0.9
+    time_margin: Annotated[float, Range(0, 1, lo_open=True)] = 0.9
     """t in [0, 1] maps to [0.5 - m/2, 0.5 + m/2] on the temporal grids (away from their boundary)."""
     rotate_with_warp: bool = True
     """The rigid warp also rotates the Gaussian's orientation (Grid4D's code only adds dr)."""
     detach_positions: bool = True
     """Encode detached positions (as Grid4D and Deformable-3DGS do): canonical means still get gradients through
     mu' directly, just not through the grids' coordinate derivatives (which would cost about a forward pass)."""
-    reg_fraction: float = 0.1
+    reg_fraction: Annotated[float, UNIT] = 0.1
     """Share of the points the smoothness regulariser samples in each regularised pass."""
-    reg_spatial_perturb: tuple[float, float, float] = (3.125e-3, 3.125e-3, 3.125e-3)
+    reg_spatial_perturb: Annotated[tuple[float, float, float], NON_NEGATIVE] = (3.125e-3, 3.125e-3, 3.125e-3)
     """Perturbation half-widths x y z in unit-box coordinates (Grid4D's 1e-2 in its [-1.6, 1.6] box is 1e-2 / 3.2)."""
-    reg_temporal_perturb: tuple[float, float, float, float] = (3.125e-3, 3.125e-3, 3.125e-3, 0.0)
+    reg_temporal_perturb: Annotated[tuple[float, float, float, float], NON_NEGATIVE] = (3.125e-3, 3.125e-3, 3.125e-3, 0.0)
     """Perturbation half-widths x y z t of the temporal grids' coordinates (unit box)."""
-    reg_spatial_weight: float = 1.0
+    reg_spatial_weight: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the spatial grid's smoothness term."""
-    reg_temporal_weight: float = 1.0
+    reg_temporal_weight: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the temporal grids' smoothness term."""
     backend: HashGridBackend = "auto"
     """Hash-encoding implementation: numba kernel on CPU tensors, the torch reference otherwise (CUDA)."""
 
     def __post_init__(self) -> None:
-        check_choices(self)
-        if self.width < 1 or self.decoder_depth < 0:
-            raise ValueError(f"Grid4DConfig: need width >= 1 and decoder_depth >= 0, got {self.width}, {self.decoder_depth}")
-        if not 0.0 < self.time_margin <= 1.0:
-            raise ValueError(f"Grid4DConfig: time_margin must be in (0, 1], got {self.time_margin}")
-        if not 0.0 <= self.reg_fraction <= 1.0:
-            raise ValueError(f"Grid4DConfig: reg_fraction must be in [0, 1], got {self.reg_fraction}")
+        validate_config(self)
         if len(self.reg_spatial_perturb) != 3 or len(self.reg_temporal_perturb) != 4:
             raise ValueError("Grid4DConfig: reg_spatial_perturb needs 3 values and reg_temporal_perturb 4 (x, y, z, t)")
 

@@ -33,13 +33,15 @@ from __future__ import annotations
 import sys
 import threading
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Annotated, Literal, get_args
 
 import numba
 import numpy as np
 import torch
 from numba import njit, prange
 from torch import Tensor, nn
+
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, Range, validate_config
 
 HASH_PRIMES = (1, 2654435761, 805459861)
 #: Which hash-encoding implementation runs: "cpu" (numba kernel), "torch" (reference, any device), "auto" (by device).
@@ -53,24 +55,21 @@ _CHUNK = 512  # points per parallel task of the point-parallel kernels (a multip
 class HashGridConfig:
     """One 3D multiresolution hash grid. Defaults: Grid4D's spatial grid G_xyz."""
 
-    n_levels: int = 16
+    n_levels: Annotated[int, AT_LEAST_ONE] = 16
     """Resolution levels L (the output has L * n_features columns)."""
-    n_features: int = 2
+    n_features: Annotated[int, AT_LEAST_ONE] = 2
     """Features per level."""
-    log2_table_size: int = 19
+    log2_table_size: Annotated[int, Range(1, 30)] = 19
     """log2 of the rows of a hashed level (coarse levels that fit are stored densely)."""
-    base_resolution: Resolution = 16
+    base_resolution: Annotated[Resolution, AT_LEAST_ONE] = 16
     """Vertices per axis of the coarsest level (one int, or 3 for x y z of the grid's unit box)."""
-    finest_resolution: Resolution = 2048
+    finest_resolution: Annotated[Resolution, AT_LEAST_ONE] = 2048
     """Vertices per axis of the finest level (one int, or 3)."""
-    init_range: float = 1e-4
+    init_range: Annotated[float, NON_NEGATIVE] = 1e-4
     """Table entries start uniform in [-init_range, init_range] (Instant-NGP)."""
 
     def __post_init__(self) -> None:
-        if self.n_levels < 1 or self.n_features < 1:
-            raise ValueError(f"HashGridConfig: n_levels and n_features must be >= 1, got {self.n_levels}, {self.n_features}")
-        if not 1 <= self.log2_table_size <= 30:
-            raise ValueError(f"HashGridConfig: log2_table_size must be in [1, 30], got {self.log2_table_size}")
+        validate_config(self)
         base, finest = _per_axis(self.base_resolution), _per_axis(self.finest_resolution)
         if min(base) < 1 or any(f < b for f, b in zip(finest, base)):
             raise ValueError(f"HashGridConfig: need 1 <= base <= finest per axis, got {base} -> {finest}")

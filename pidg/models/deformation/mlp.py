@@ -12,9 +12,12 @@ three heads (translation, rotation, scale). Differences here, for a shared inter
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 from torch import Tensor, nn
+
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, validate_config
 
 from pidg.models.deformation.base import (
     Bounds,
@@ -30,22 +33,21 @@ from pidg.models.deformation.base import (
 class MLPDeformationConfig:
     """Defaults: Deformable-3DGS (8 x 256, skip after layer 4). A CPU configuration may use e.g. 4 x 64."""
 
-    depth: int = 8
+    depth: Annotated[int, AT_LEAST_ONE] = 8
     """Hidden layers of the MLP."""
-    width: int = 256
+    width: Annotated[int, AT_LEAST_ONE] = 256
     """Width of every hidden layer."""
-    skips: tuple[int, ...] = (4,)
+    skips: Annotated[tuple[int, ...], NON_NEGATIVE] = (4,)
     """Re-inject the encoded input after these layers (0-based)."""
-    position_frequencies: int = 10
+    position_frequencies: Annotated[int, NON_NEGATIVE] = 10
     """NeRF positional-encoding frequencies of the normalised position."""
-    time_frequencies: int = 6
+    time_frequencies: Annotated[int, NON_NEGATIVE] = 6
     """NeRF positional-encoding frequencies of the time t in [0, 1]."""
     detach_positions: bool = True
     """Encode detached positions, as Deformable-3DGS does (canonical means still get gradients through mu')."""
 
     def __post_init__(self) -> None:
-        if self.depth < 1 or self.width < 1:
-            raise ValueError(f"MLPDeformationConfig: need depth >= 1 and width >= 1, got {self.depth}, {self.width}")
+        validate_config(self)
         if any(not 0 <= s < self.depth - 1 for s in self.skips):
             raise ValueError(f"MLPDeformationConfig: skips must be layer indices in [0, depth - 1), got {self.skips}")
 
