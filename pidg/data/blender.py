@@ -6,7 +6,8 @@ Layout::
                                        or fl_x [, fl_y, cx, cy, w, h]; frames: file_path, time, transform_matrix
     <file_path>[.png]                  RGBA or RGB frames; file_path may omit the extension
     mask/<frame file name>.png         optional motion masks (nonzero = dynamic), PIDG scenes
-    depth/<frame file name>.npy        optional depth maps: float32 [H, W] camera z in scene units, 0 = unknown
+    depth/<frame file name>.npy|.npz   optional depth maps: float32 [H, W] camera z in scene units, 0 (or NaN,
+                                       inf) = unknown; an .npz holds one array or one named "depth"
                                        (used by the flow decomposition instead of the model's rendered depth)
     points3d.ply                       optional initial point cloud, PIDG scenes
 
@@ -122,6 +123,13 @@ class _JsonFrame:
         return stem if ext.lower() in _IMAGE_EXTENSIONS else path
 
     @property
+    def image_id(self) -> str:
+        """Which image file the entry names, as :func:`_image_path` finds it: 'train/0002' and './train/0002.png'
+        are one file, 'a.png' and 'a.jpg' two (``key`` strips both extensions)."""
+        path = posixpath.normpath(self.file_path.replace("\\", "/"))
+        return path[: -len(".png")] if path.endswith(".png") else path
+
+    @property
     def file_name(self) -> str:
         """File name without directory and image extension ('train/0002.png' -> '0002')."""
         return posixpath.basename(self.key)
@@ -226,6 +234,48 @@ def _assign_times(frames: dict[str, list[_JsonFrame]], config: DataConfig) -> tu
     return times, "index" if used_index else "json"
 
 
+# Two entries of one file agree when times and matrix entries differ by at most this (for translations, times
+# their size): far above the rounding of printed floats, far below anything meaningful (a frame of a
+# 10,000-frame video, 0.006 degrees).
+_SAME_ENTRY_TOLERANCE = 1e-4
+
+
+def _check_repeated_images(
+    frames: dict[str, list[_JsonFrame]], times: dict[str, list[float]], time_source: str
+) -> None:
+    """An image file listed twice (in one split file or two) must be one picture: the same time and camera pose.
+
+    Identical repeats only get a warning: within a split they merely weight a frame twice, and across splits they
+    are sometimes deliberate (exports that write val = test, a training view evaluated on purpose), so refusing to
+    load would cost more than saying so; the warning says when a training image sits in an evaluation split, where
+    it inflates the scores. Index times (time source "index") are list positions, not data: only poses count there.
+    """
+    first: dict[str, tuple[str, _JsonFrame, float]] = {}
+    repeats: list[str] = []
+    in_evaluation = 0
+    for split, split_frames in frames.items():
+        for f, t in zip(split_frames, times[split]):
+            other_split, g, other_t = first.setdefault(f.image_id, (split, f, t))
+            if g is f:
+                continue
+            other = g.where if g.json_path == f.json_path else f"{g.where} of {g.json_path.name}"
+            pose_gap = float((f.c2w - g.c2w).abs().max())
+            if time_source != "index" and abs(t - other_t) > _SAME_ENTRY_TOLERANCE:
+                conflict = f"another time ({t:g} here, {other_t:g} there)"
+            elif pose_gap > _SAME_ENTRY_TOLERANCE * max(1.0, float(g.c2w[:3, 3].abs().max())):
+                conflict = f"another camera pose ('transform_matrix' entries differ by up to {pose_gap:.3g})"
+            else:
+                repeats.append(f"{f.json_path.name} {f.where} repeats {other}")
+                in_evaluation += other_split == "train" and split != "train"
+                continue
+            raise DatasetError(f.json_path, f"{f.where} names the same image as {other} with {conflict}")
+    if repeats:
+        leak = ""
+        if in_evaluation:
+            leak = f"; {in_evaluation} are training images in an evaluation split (inflated scores)"
+        logger.warning("%d image(s) listed twice with identical entries, e.g. %s%s", len(repeats), repeats[0], leak)
+
+
 def _image_path(root: Path, f: _JsonFrame) -> Path:
     """The frame's file: file_path + '.png' first (BlenderNeRF/D-NeRF omit it), then file_path as written."""
     candidates = [root / (f.file_path + ".png"), root / f.file_path]
@@ -235,6 +285,14 @@ def _image_path(root: Path, f: _JsonFrame) -> Path:
     raise DatasetError(
         candidates[0], f"image file not found ({f.where} of {f.json_path.name}; also tried {candidates[1]})"
     )
+
+
+def _depth_path(depth_dir: Path, f: _JsonFrame) -> Path | None:
+    """depth/<frame>.npy or depth/<frame>.npz; None when the frame has neither (the model's depth is used)."""
+    found = [p for p in (depth_dir / f"{f.file_name}.npy", depth_dir / f"{f.file_name}.npz") if p.is_file()]
+    if len(found) == 2:  # which one is meant is a guess
+        raise DatasetError(found[1], f"{found[0].name} exists too; keep one depth map per frame")
+    return found[0] if found else None
 
 
 def read_blender(config: DataConfig) -> SceneData:
@@ -255,6 +313,7 @@ def read_blender(config: DataConfig) -> SceneData:
     use_json_time = config.time_source == "json"
     json_frames = {s: _read_split(transforms_path(root, s), use_json_time) for s in available}
     times, time_source = _assign_times(json_frames, config)
+    _check_repeated_images(json_frames, times, time_source)
     logger.info("%s: frame times from %s", root.name, time_source)
     info: dict[str, object] = {}
     if time_source == "json":
@@ -274,6 +333,7 @@ def read_blender(config: DataConfig) -> SceneData:
     mask_dir = root / "mask"
     use_masks = config.load_masks and mask_dir.is_dir()
     depth_dir = root / "depth"
+    has_depth_dir = depth_dir.is_dir()
     splits = {}
     for split in config.splits:
         chosen = select_subset(len(json_frames[split]), config.max_frames)
@@ -288,7 +348,7 @@ def read_blender(config: DataConfig) -> SceneData:
                     time=t,
                     make_camera=_camera_builder(f, image_path),
                     mask_path=mask_dir / f"{f.file_name}.png" if use_masks else None,
-                    depth_path=depth_dir / f"{f.file_name}.npy" if (depth_dir / f"{f.file_name}.npy").is_file() else None,
+                    depth_path=_depth_path(depth_dir, f) if has_depth_dir else None,
                 )
             )
         splits[split] = load_frames(specs, config, desc=f"{root.name}/{split}")
@@ -299,7 +359,12 @@ def read_blender(config: DataConfig) -> SceneData:
     centers = torch.stack([f.c2w[:3, 3] for f in bound_frames])
     info["layout"] = blender_layout(root)
     info["masks"] = use_masks
-    info["depth_maps"] = depth_dir.is_dir()
+    # True only when some loaded frame has a depth map: a depth/ folder whose names match no frame gives none.
+    info["depth_maps"] = any(frame.depth is not None for frames in splits.values() for frame in frames)
+    if has_depth_dir and not info["depth_maps"]:
+        logger.warning(
+            "%s: depth/ holds no <frame file name>.npy or .npz for the loaded frames; using rendered depth", depth_dir
+        )
     return SceneData(
         root=root,
         kind="blender",

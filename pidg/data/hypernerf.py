@@ -51,6 +51,7 @@ from pidg.data.io import (
     require,
     select_subset,
 )
+from pidg.data.ply import check_points
 from pidg.data.scene import DataConfig, DatasetError, PointCloud, SceneData, compute_bounds
 from pidg.render.camera import Camera
 
@@ -241,11 +242,14 @@ def _read_points(path: Path, center: tuple[float, float, float], scale: float) -
         return None
     try:
         xyz = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, EOFError) as e:  # EOFError: an empty file
         raise DatasetError(path, f"cannot read points: {e}") from None
-    if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.issubdtype(xyz.dtype, np.number):
-        raise DatasetError(path, f"expected a [P, 3] array of numbers, got {xyz.dtype} {xyz.shape}")
-    if not np.isfinite(xyz).all():
-        raise DatasetError(path, "points contain NaN or infinite values")
+    if not isinstance(xyz, np.ndarray):  # an .npz archive under the .npy name
+        xyz.close()
+        raise DatasetError(path, "cannot read points: expected one .npy array, found an .npz archive")
+    real = np.issubdtype(xyz.dtype, np.floating) or np.issubdtype(xyz.dtype, np.integer)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or not real:
+        raise DatasetError(path, f"expected a [P, 3] array of real numbers, got {xyz.dtype} {xyz.shape}")
+    check_points(path, xyz)  # in the file's own coordinates, the ones a reader of the message can look up
     xyz = (xyz.astype(np.float64) - np.asarray(center)) * scale
     return PointCloud(torch.from_numpy(xyz.astype(np.float32)))

@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import time
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -149,20 +150,57 @@ def _open_image(path: Path, kind: str = "image") -> Image.Image:
     return image
 
 
+# Modes whose pixels have no defined 0..255 range (float or 32-bit integer samples: radiance, counts, labels);
+# converting them to 8 bits would clip or rescale by guesswork, so they are rejected.
+_UNSCALED_MODES = {"F": "32-bit float", "I": "32-bit integer"}
+_ALPHA_MODES = ("RGBA", "LA", "PA", "La", "RGBa")
+
+
 def decode_rgb(path: Path, background: tuple[float, float, float]) -> np.ndarray:
     """[H, W, 3] float32 in [0, 255]; an alpha channel is composited: rgb * a + background * (1 - a).
 
     Kept in the 0..255 scale (not 0..1) to save a pass over the pixels; the in-place arithmetic
     (rgb - bg) * a + bg is about 5x faster than the broadcast expression on an 800x800 frame.
+    16-bit PNGs: PIL already hands RGB(A) and gray+alpha over with 8-bit samples (the high byte of each), but plain
+    16-bit gray as mode I;16 ("I" in older Pillow), which is scaled here: PIL's own conversion would clip it at 255.
     """
     image = _open_image(path)
-    has_alpha = image.mode in ("RGBA", "LA", "PA", "La", "RGBa") or (image.mode == "P" and "transparency" in image.info)
-    if image.mode not in ("RGB", "RGBA"):
-        image = image.convert("RGBA" if has_alpha else "RGB")
+    if image.mode.startswith("I;16") or (image.mode == "I" and image.format == "PNG"):  # PNG has no 32-bit gray
+        return _decode_gray16(image, path, background)
+    if image.mode in _UNSCALED_MODES:
+        raise DatasetError(
+            path,
+            f"image mode {image.mode!r} ({_UNSCALED_MODES[image.mode]} samples) has no 0..255 range; "
+            f"frames must be 8- or 16-bit pictures (e.g. PNG)",
+        )
+    has_alpha = image.mode in _ALPHA_MODES or "transparency" in image.info  # P, L or RGB with a tRNS chunk
+    if image.mode != ("RGBA" if has_alpha else "RGB"):
+        try:
+            image = image.convert("RGBA" if has_alpha else "RGB")
+        except ValueError as e:
+            raise DatasetError(path, f"cannot convert image mode {image.mode!r} to RGB: {e}") from None
     array = np.asarray(image)
     if has_alpha:
+        if image.getchannel("A").getbbox() is None:  # C-speed scan, stops at the first nonzero alpha
+            raise DatasetError(path, "alpha is zero everywhere: the frame is pure background, nothing to learn from")
         return composite_rgba_float(array, background)
     return array[..., :3].astype(np.float32)
+
+
+def _decode_gray16(image: Image.Image, path: Path, background: tuple[float, float, float]) -> np.ndarray:
+    """A 16-bit gray image as [H, W, 3] float32 in [0, 255] (v * 255 / 65535, the rounding left to the caller);
+    a tRNS transparent gray level becomes background."""
+    gray = np.asarray(image)
+    level = gray.astype(np.float32)
+    level *= 255.0 / 65535.0  # scaled once, before the copy to three channels
+    rgb = np.repeat(level[..., None], 3, axis=2)
+    key = image.info.get("transparency")
+    if isinstance(key, int):
+        clear = gray == key
+        if clear.all():
+            raise DatasetError(path, "alpha is zero everywhere: the frame is pure background, nothing to learn from")
+        rgb[clear] = np.asarray(background, np.float32) * 255.0
+    return rgb
 
 
 def composite_rgba_float(rgba: np.ndarray, background: tuple[float, float, float]) -> np.ndarray:
@@ -186,21 +224,51 @@ def decode_mask(path: Path) -> np.ndarray:
 
 
 def decode_depth(path: Path) -> np.ndarray:
-    """[H, W] float32 camera-z depth in scene units from a ``.npy`` file; 0 = unknown (non-finite values too)."""
-    try:
-        depth = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise DatasetError(path, "depth file not found") from None
-    except (OSError, ValueError) as e:
-        raise DatasetError(path, f"cannot read depth map: {e}") from None
+    """[H, W] float32 camera-z depth in scene units from a ``.npy`` or ``.npz`` file; 0 = unknown (non-finite
+    values too: renderers write +inf or NaN where a ray hits nothing)."""
+    depth = _load_depth_array(path)
     if depth.ndim == 3 and depth.shape[-1] == 1:
         depth = depth[..., 0]
-    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
-        raise DatasetError(path, f"depth map must be a 2D numeric array [H, W], got {depth.dtype} {list(depth.shape)}")
+    real = np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)
+    if depth.ndim != 2 or not real:
+        raise DatasetError(path, f"depth map must be a 2D real array [H, W], got {depth.dtype} {list(depth.shape)}")
     depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
     if (depth < 0).any():
         raise DatasetError(path, "depth map has negative values (expected camera z >= 0, 0 = unknown)")
     return depth
+
+
+_NPY_MAGIC, _NPZ_MAGICS = b"\x93NUMPY", (b"PK\x03\x04", b"PK\x05\x06")  # as np.load tells them apart
+
+
+def _load_depth_array(path: Path) -> np.ndarray:
+    """The array of a ``.npy`` file, or of a ``.npz`` the one named "depth" or its only array.
+
+    An ``.npz`` with several arrays and none named "depth" is rejected rather than read by position: its first
+    array may as well be a disparity or a confidence map.
+    """
+    try:
+        with open(path, "rb") as file:
+            magic = file.read(len(_NPY_MAGIC))
+            if not magic.startswith((_NPY_MAGIC, *_NPZ_MAGICS)):  # numpy would try to unpickle it and say so
+                raise DatasetError(path, "cannot read depth map: not a NumPy .npy or .npz file")
+            file.seek(0)
+            loaded = np.load(file, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):
+                return loaded
+            with loaded:
+                names = list(loaded.files)
+                if "depth" not in names and len(names) != 1:
+                    raise DatasetError(
+                        path, f"depth .npz holds arrays {names}; expected one array or one named 'depth'"
+                    )
+                return loaded["depth" if "depth" in names else names[0]]
+    except DatasetError:
+        raise
+    except FileNotFoundError:
+        raise DatasetError(path, "depth file not found") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:  # truncated, corrupt, object arrays
+        raise DatasetError(path, f"cannot read depth map: {e}") from None
 
 
 def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:

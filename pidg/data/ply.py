@@ -51,10 +51,10 @@ def _parse_header(path: Path, data: bytes) -> tuple[str, list[_Element], int]:
         if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
         elif words[0] == "element" and len(words) == 3:
-            try:
-                elements.append(_Element(words[1], int(words[2])))
-            except ValueError:
-                raise DatasetError(path, f"bad PLY element line {raw!r}") from None
+            count = int(words[2]) if words[2].isdigit() else -1  # a negative count would read "all" in numpy
+            if count < 0:
+                raise DatasetError(path, f"bad PLY element line {raw!r} (expected a name and a count >= 0)")
+            elements.append(_Element(words[1], count))
         elif words[0] == "property" and elements:
             if words[1] == "list":
                 elements[-1].has_list = True
@@ -91,6 +91,8 @@ def read_ply_points(path: Path | str) -> PointCloud:
         raise DatasetError(path, f"PLY vertex element lacks properties {missing}")
     if vertex.has_list:
         raise DatasetError(path, "PLY vertex element with list properties is not supported")
+    if vertex.count == 0:
+        raise DatasetError(path, _EMPTY)
 
     if fmt == "ascii":
         table = _read_ascii_vertices(path, data[offset:], elements, vertex)
@@ -100,19 +102,50 @@ def read_ply_points(path: Path | str) -> PointCloud:
         )
 
     xyz = np.stack([np.asarray(table["x"], np.float64), np.asarray(table["y"]), np.asarray(table["z"])], axis=1)
-    if not np.isfinite(xyz).all():
-        raise DatasetError(
-            path, f"{int((~np.isfinite(xyz).all(axis=1)).sum())} points have NaN or infinite coordinates"
-        )
+    check_points(path, xyz)
     rgb = None
     if all(c in props for c in _COLOR_NAMES):
         cols = np.stack([np.asarray(table[c], np.float64) for c in _COLOR_NAMES], axis=1)
+        _check_finite(path, cols, "colours")
         if props["red"] in ("u1",):
             cols = cols / 255.0
         elif props["red"] in ("u2",):
             cols = cols / 65535.0
         rgb = torch.from_numpy(np.clip(cols, 0.0, 1.0).astype(np.float32))
     return PointCloud(torch.from_numpy(xyz.astype(np.float32)), rgb)
+
+
+#: Largest accepted |coordinate| of an initial point, in scene units. Scenes are a few units across (D-NeRF
+#: cameras sit ~4 from the origin) and even far outliers of a real capture's cloud stay orders of magnitude below
+#: this, while float32 resolves only 0.06 units at 1e6: beyond it a value is garbage (1e30 from uninitialised
+#: memory, a float64 that would overflow float32) or a unit mix-up, not geometry.
+MAX_POINT_COORDINATE = 1e6
+_EMPTY = "point cloud has 0 points; remove the file to initialise without it"
+
+
+def check_points(path: Path, xyz: np.ndarray) -> None:
+    """Reject an empty cloud, NaN/infinite and absurdly large coordinates here, where the file can be named;
+    later they would surface as a bad scene box or a failed initialisation far from their cause."""
+    if len(xyz) == 0:
+        raise DatasetError(path, _EMPTY)
+    _check_finite(path, xyz, "coordinates")
+    far = np.abs(xyz).max(axis=1) > MAX_POINT_COORDINATE
+    if far.any():
+        first = int(np.argmax(far))
+        raise DatasetError(
+            path,
+            f"{int(far.sum())} of {len(xyz)} points have coordinates beyond +-{MAX_POINT_COORDINATE:g} scene units "
+            f"(point {first} is ({', '.join(f'{v:.6g}' for v in xyz[first])}))",
+        )
+
+
+def _check_finite(path: Path, values: np.ndarray, what: str) -> None:
+    bad = ~np.isfinite(values).all(axis=1)
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise DatasetError(
+            path, f"{int(bad.sum())} of {len(values)} points have NaN or infinite {what} (first: point {first})"
+        )
 
 
 def _read_ascii_vertices(path: Path, body: bytes, elements: list[_Element], vertex: _Element) -> dict[str, np.ndarray]:
