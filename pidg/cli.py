@@ -17,7 +17,7 @@ from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_ben
 from pidg.bench.step import run_step_bench
 from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE
 from pidg.config_tools import MISSING_OPTION, add_config_arguments, apply_overrides, load_config, overrides_from_args
-from pidg.data import dataset_layout, load_scene
+from pidg.data import dataset_layout, detect_format, load_scene
 from pidg.device import Device, resolve_device
 from pidg.flow import run_preprocess
 from pidg.flow.config import FlowKind
@@ -52,7 +52,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         config = _train_config(args)
         if not str(config.data.path):
             raise ValueError("give the dataset folder with --data.path DIR")
-        claim_run_folder(config.output.dir, overwrite=args.overwrite)  # before loading anything: fail fast
+        detect_format(config.data.root)  # a missing or unknown dataset folder fails before the run folder is touched
+        claim_run_folder(config.output.dir, overwrite=args.overwrite)  # before loading the images: fail fast
         trainer = Trainer(config, load_scene(config.data))
     summary = trainer.train()
     print(f"trained {summary['iterations']} iterations in {summary['train_minutes']:.1f} min "
@@ -260,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as err:  # noqa: BLE001 - the one place every error becomes one line
         known = isinstance(err, (ValueError, OSError, RuntimeError, ImportError, KeyError))
         text = " ".join(str(err).split()) if known else f"{type(err).__name__}: {err}"
-        print(f"pidg {args.command}: error: {text} (pidg --debug {args.command} ... shows the traceback)", file=sys.stderr)
+        print(f"pidg {args.command}: error: {text} (pidg --debug ... shows the traceback)", file=sys.stderr)
         return 2
 
 
