@@ -8,7 +8,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import get_args
+from typing import NoReturn, get_args
 
 from pidg.bench.cmr import VARIANTS as CMR_BENCH_VARIANTS
 from pidg.bench.cmr import CMRBenchConfig, run_cmr_bench
@@ -158,8 +158,15 @@ def _add_device_option(parser: argparse.ArgumentParser) -> None:
                         help="where to compute: cuda (rendering with gsplat), cpu, or auto (CUDA when available)")
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, like every other error of the command."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} -h)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="pidg", description="Physics-Informed Deformable Gaussian Splatting")
+    parser = _Parser(prog="pidg", description="Physics-Informed Deformable Gaussian Splatting")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error (else one line)")
     sub = parser.add_subparsers(dest="command", required=True)
 

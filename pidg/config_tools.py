@@ -2,11 +2,12 @@
 
 One source of truth per setting: a config field's type annotation is its parser and validator (``Literal`` fields
 take their choices from the annotation; numeric fields are finite and, when annotated ``Annotated[int, Range(1)]``,
-within their range; :func:`validate_config` checks both from ``__post_init__``, so Python callers, the command line
-and saved JSON get the same checks), and the string literal right below the field (the nerfstudio / tyro
-convention) is its documentation and its ``--help`` text. Every leaf field of a nested config becomes a ``--section.field VALUE``
-option; the resolved config is written as JSON next to every run and read back by :func:`from_jsonable`, the one
-deserializer (nested dataclasses, tuples, paths, unions), so config classes need no per-class fixes for JSON.
+within their range; :func:`validate_config` checks both from ``__post_init__``, so Python callers, the command
+line and saved JSON get the same checks), and the string literal right below the field (the nerfstudio / tyro
+convention) is its documentation and its ``--help`` text. Every leaf field of a nested config becomes a
+``--section.field VALUE`` option; the resolved config is written as JSON next to every run and read back by
+:func:`from_jsonable`, the one deserializer (nested dataclasses, tuples, paths, unions), so config classes need no
+per-class fixes for JSON.
 
 Why not tyro (the dataclass CLI nerfstudio and gsplat use)? It was tried on ``TrainConfig``: it would change every
 documented command (``--data.time-source`` with dashes, ``--flag/--no-flag`` booleans, ``400 400`` instead of

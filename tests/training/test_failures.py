@@ -212,3 +212,10 @@ def test_bad_numbers_are_one_line_naming_the_option(dataset, tmp_path, capsys, o
 def test_debug_shows_the_traceback(tmp_path):
     with pytest.raises(FileNotFoundError, match="no config.json"):
         main(["--debug", "eval", str(tmp_path)])
+
+
+def test_a_bad_choice_is_one_line_too(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--physics", "pde"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and len(err) == 1 and "invalid choice: 'pde'" in err[0] and "pidg train -h" in err[0]
