@@ -158,8 +158,7 @@ def _render_flows(
     model: DynamicGaussians, scene: SceneData, config: FlowConfig, run_dir: Path, out_dir: Path, fps: int
 ) -> list[Path]:
     """Motion flow (target) | Gaussian flow | velocity flow for every consecutive training pair, one colour scale."""
-    frames = scene.train
-    cache = open_flow_cache(scene.to("cpu"), config, run_dir / "flow_cache", progress=False).to(frames[0].image_u8.device, frames)
+    cache = open_flow_cache(scene, config, run_dir / "flow_cache", progress=False)
     panels, errors = [], []
     for k in range(len(cache)):
         panel, err = flow_comparison(model, cache.pair(k), config)

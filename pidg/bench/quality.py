@@ -57,9 +57,7 @@ def run_quality_bench(
             summary = trainer.train()
             flow_errors = {}
             if config.needs_material_field:
-                cache = trainer.flow_cache or open_flow_cache(scene, config.flow, run_dir / "flow_cache", progress=False).to(
-                    trainer.device, trainer.scene.train
-                )
+                cache = trainer.flow_cache or open_flow_cache(trainer.scene, config.flow, run_dir / "flow_cache", progress=False)
                 flow_errors = flow_end_point_errors(trainer.model, cache, config.flow)
             metrics = evaluate_and_save(trainer.model, trainer.scene, run_dir, "test", nets, trainer.step)  # the model just trained
             row = {

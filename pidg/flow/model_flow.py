@@ -38,11 +38,15 @@ def rendered_depth(model: DynamicGaussians, state: DeformedGaussians, camera: Ca
     return depth_from_render(model.render_state(detached, camera))
 
 
-def model_flow_target(model: DynamicGaussians, pair: FlowPair, state_t1: DeformedGaussians, config: FlowConfig) -> FlowTarget:
-    """flow_gt of a pair; frame t+1's depth is the dataset's depth map when it has one, else the model's own
-    render at t+1 in camera t+1."""
-    depth = pair.frame1.depth if pair.frame1.depth is not None else rendered_depth(model, state_t1, pair.frame1.camera)
-    return flow_target_for_pair(pair, depth, config)
+def model_flow_target(
+    model: DynamicGaussians, pair: FlowPair, state_t1: DeformedGaussians, config: FlowConfig
+) -> tuple[FlowTarget, Tensor | None]:
+    """flow_gt of a pair, and the rendered depth it used (None when the dataset's): frame t+1's depth is the
+    dataset's depth map when it has one, else the model's own render at t+1 in camera t+1."""
+    if pair.frame1.depth is not None:
+        return flow_target_for_pair(pair, pair.frame1.depth, config), None
+    depth = rendered_depth(model, state_t1, pair.frame1.camera)
+    return flow_target_for_pair(pair, depth, config), depth
 
 
 @torch.no_grad()
@@ -51,6 +55,6 @@ def render_pair_flows(model: DynamicGaussians, pair: FlowPair, config: FlowConfi
     state_t, state_t1 = model.at(pair.frame0.time), model.at(pair.frame1.time)
     camera = pair.frame0.camera
     out = model.render_state(state_t, camera, flow_channels(model, camera, state_t, state_t1, pair.frame0.time, pair.dt))
-    target = model_flow_target(model, pair, state_t1, config)
+    target, _ = model_flow_target(model, pair, state_t1, config)
     flow_g, flow_v, _ = decode_flows(out.features, out.alpha)
     return out, target, lpfm_loss(flow_g, flow_v, target, out.alpha, config)

@@ -338,13 +338,16 @@ def flow_summary(cache: FlowCache) -> dict[str, Any]:
 
 def open_flow_cache(scene: SceneData, config: FlowConfig, fallback_dir: Path, progress: bool = True) -> FlowCache:
     """The scene's flow cache, computed where missing: next to the dataset, or in ``fallback_dir`` (e.g. the run
-    folder) when the dataset folder is missing or read-only."""
+    folder) when the dataset folder is missing or read-only. Flows are estimated from the images on the CPU; the
+    cache comes back on the scene's device, its pairs made of the scene's own frames."""
     root = Path(scene.root)
     cache_root = None
     if not (root.is_dir() and os.access(root, os.W_OK)):
         cache_root = Path(fallback_dir)
         logger.info("dataset folder %s is not writable: caching optical flow in %s", root, cache_root)
-    return preprocess_flow(scene, config, cache_root, progress=progress)
+    cache = preprocess_flow(scene.to("cpu"), config, cache_root, progress=progress)
+    device = scene.background.device
+    return cache if device.type == "cpu" else cache.to(device, scene.train)
 
 
 def run_preprocess(data_config: DataConfig, flow_config: FlowConfig, cache_root: Path | None = None) -> dict[str, Any]:

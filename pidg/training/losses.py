@@ -22,8 +22,17 @@ import torch
 from torch import Tensor
 
 from pidg.data.scene import Frame
-from pidg.flow import FlowCache, FlowConfig, FlowPair, FlowTarget, decode_flows, flow_channels, flow_target_for_pair, lpfm_loss
-from pidg.flow.model_flow import rendered_depth
+from pidg.flow import (
+    FlowCache,
+    FlowConfig,
+    FlowPair,
+    FlowTarget,
+    decode_flows,
+    flow_channels,
+    flow_target_for_pair,
+    lpfm_loss,
+    model_flow_target,
+)
 from pidg.metrics import ssim
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -220,8 +229,7 @@ class FlowMatchingLoss(LossTerm):
                 depth = pair.frame1.depth if cached.depth is None else cached.depth.to(pair.forward.device)
                 cached.target = flow_target_for_pair(pair, depth, self.config)
             return cached.target
-        depth = None if pair.frame1.depth is not None else rendered_depth(model, state_t1, pair.frame1.camera)
-        target = flow_target_for_pair(pair, depth if depth is not None else pair.frame1.depth, self.config)
+        target, depth = model_flow_target(model, pair, state_t1, self.config)
         self._targets[pair.frame0.name] = _CachedTarget(step, depth, target)
         return target
 

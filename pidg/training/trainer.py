@@ -99,9 +99,8 @@ class Trainer:
         self.scene = scene.to(self.device)  # images stay uint8 on the device
         self.optimizers = make_optimizers(self.model, config, self.extent)
         self.flow_cache: FlowCache | None = None
-        if config.flow.enabled:  # computed from the images on the CPU, then moved with the frames
-            cache = open_flow_cache(scene, config.flow, Path(config.output.dir) / "flow_cache", config.output.progress)
-            self.flow_cache = cache.to(self.device, self.scene.train)
+        if config.flow.enabled:
+            self.flow_cache = open_flow_cache(self.scene, config.flow, Path(config.output.dir) / "flow_cache", config.output.progress)
         self.loss_terms: list[LossTerm] = build_loss_terms(config, self.flow_cache)
         self.strategy = DensificationStrategy(config.densify, self.extent)
         self.densify_state = self.strategy.initialize_state(self.model.num_gaussians, self.model.device)
@@ -372,8 +371,12 @@ class Trainer:
         return path
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore a checkpoint's state into this trainer (its model must have the checkpoint's sizes)."""
+        """Restore a checkpoint's state into this trainer: the model, then everything that optimises it."""
         self.load_model_state(state["model"])
+        self._load_optimization_state(state)
+
+    def _load_optimization_state(self, state: dict) -> None:
+        """Everything of a checkpoint but the model, for a model that already holds the checkpoint's values."""
         for name, opt in self.optimizers.items():
             opt.load_state_dict(state["optimizers"][name])  # moments; this config's learning rates stay
         self.densify_state.load_state_dict(state["densification"])
@@ -414,8 +417,8 @@ class Trainer:
                 f"expected {CHECKPOINT_FORMAT!r}); checkpoints of pidg 0.1 are read by that version only"
             )
         config = config or from_jsonable(TrainConfig, state["config"])
-        trainer = cls(config, scene, DynamicGaussians.from_state_dict(state["model"]))
-        trainer.load_state_dict(state)
+        trainer = cls(config, scene, DynamicGaussians.from_state_dict(state["model"]))  # its optimizers fit the model
+        trainer._load_optimization_state(state)
         trainer.last_good_step = trainer.step  # this run's own checkpoint: where a failure rolls back to
         return trainer
 

@@ -114,7 +114,7 @@ def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):
     flow_term = next(term for term in trainer.loss_terms if term.name == "lpfm")
     state_t1 = trainer.model.at(pair.frame1.time)
     try:
-        targets = [flow_term.target(trainer.model, pair, state_t1, step=0), model_flow_target(trainer.model, pair, state_t1, trainer.config.flow)]
+        targets = [flow_term.target(trainer.model, pair, state_t1, step=0), model_flow_target(trainer.model, pair, state_t1, trainer.config.flow)[0]]
     finally:
         pair.frame1.depth = None
     expected = flow_target_for_pair(pair, depth, trainer.config.flow)
