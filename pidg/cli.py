@@ -12,12 +12,15 @@ from typing import NoReturn, get_args
 
 from pidg.bench.cmr import VARIANTS as CMR_BENCH_VARIANTS
 from pidg.bench.cmr import CMRBenchConfig, run_cmr_bench
+from pidg.bench.executors import ExecutorName, make_executor
 from pidg.bench.quality import run_quality_bench
+from pidg.bench.suite import SUITES, discover_scenes, run_suite, suite_config
 from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_bench
 from pidg.bench.step import run_step_bench
 from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE
 from pidg.config_tools import MISSING_OPTION, add_config_arguments, apply_overrides, load_config, overrides_from_args
-from pidg.data import dataset_layout, detect_format, load_scene
+from pidg.data import dataset_layout, detect_format, load_scene, parse_downscale
+from pidg.export import check_time, export_ply, export_ply_sequence
 from pidg.device import Device, resolve_device
 from pidg.flow import run_preprocess
 from pidg.flow.config import FlowKind
@@ -25,6 +28,9 @@ from pidg.metrics import NetName
 from pidg.models.material_field import Activation, MaterialFieldConfig
 from pidg.physics import PhysicsConfig, PhysicsKind
 from pidg.pipeline import evaluate_run, render_run, run_demo
+from pidg.report import build_report
+from pidg.viewer import Quality, ViewerOptions, serve_run
+from pidg.viewer.server import measure_run
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig, apply_preset
 from pidg.training.run_folder import claim_run_folder, resume_config
 from pidg.training.trainer import Trainer
@@ -91,6 +97,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"), device=args.device)
     mean = result["mean"]
     print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
+    for name, future in result.get("future", {}).items():
+        print(f"future ({name} after t={future['t_last']:.3f}): "
+              + " ".join(f"{k}={v:.4f}" for k, v in future["mean"].items() if v is not None))
     return 0
 
 
@@ -102,6 +111,40 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes, physics=args.physics, flow=args.flow, device=args.device)
+    return 0
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    quality = Quality(preview_scale=args.preview_scale, max_side=args.max_size)
+    if args.measure is not None:
+        size = parse_downscale(args.measure)
+        if not isinstance(size, tuple) or min(size) < 16:
+            raise ValueError(f"--measure {args.measure}: give a size such as 800x800 (at least 16 px a side)")
+        m = measure_run(Path(args.run), size, device=args.device, repeats=args.repeats, quality=quality)
+        print(f"{args.run}: {m['gaussians']} Gaussians on {m['device']}, median of {m['repeats']} frames (render + JPEG, no network)")
+        for name, w, h in (("full", m["width"], m["height"]), ("preview", m["preview_width"], m["preview_height"])):
+            print(f"  {name} {w}x{h}: {m[f'{name}_camera_moves_ms']:.0f} ms while the camera moves, "
+                  f"{m[f'{name}_time_changes_ms']:.0f} ms when the time changes too")
+        for mode, times in m["modes"].items():
+            print(f"  {mode}: {times['full_ms']:.0f} ms full, {times['preview_ms']:.0f} ms preview")
+        return 0
+    serve_run(Path(args.run), ViewerOptions(host=args.host, port=args.port, device=args.device, quality=quality, cameras=not args.no_cameras))
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    if args.time is not None:
+        path = export_ply(Path(args.run), check_time(args.time), args.out, device=args.device, sh_degree=args.sh_degree)
+        print(f"wrote {path} (Gaussians at t = {args.time:g}, positions in the dataset's world units)")
+        return 0
+    paths = export_ply_sequence(Path(args.run), args.times, args.out, device=args.device, sh_degree=args.sh_degree)
+    print(f"wrote {len(paths)} PLY files and frames.json to {paths[0].parent}")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    out = build_report([Path(p) for p in args.paths], Path(args.out), str(resolve_device(args.device)), not args.no_pictures)
+    print(f"report -> {out}")
     return 0
 
 
@@ -119,6 +162,19 @@ def _cmd_bench_quality(args: argparse.Namespace) -> int:
     minutes = args.minutes if args.minutes and args.minutes > 0 else None
     config = _train_config(args, data_path=args.scenes[0])  # the preset follows the first scene's layout
     run_quality_bench([Path(p) for p in args.scenes], Path(args.out), config, args.downscale, minutes, args.variants)
+    return 0
+
+
+def _cmd_bench_suite(args: argparse.Namespace) -> int:
+    spec = SUITES[args.name]
+    scenes = discover_scenes(args.data, spec.layout)  # the preset follows the suite's kind of scene
+    explicit = set(overrides_from_args(args))
+    config = suite_config(args.name, _train_config(args, data_path=str(scenes[0])), explicit)
+    executor = make_executor(args.executor, args.workers, args.ray_address, args.gpus_per_job, args.cpus_per_job)
+    minutes = args.minutes if args.minutes and args.minutes > 0 else None
+    run_suite(args.name, Path(args.data), Path(args.out or f"outputs/suite/{args.name}"), config, minutes=minutes,
+              variants=args.variants, scenes=args.scenes, downscale=args.downscale, ssim=args.ssim, executor=executor,
+              integrator=args.integrator)
     return 0
 
 
@@ -210,6 +266,47 @@ def build_parser() -> argparse.ArgumentParser:
     _add_device_option(demo)
     demo.set_defaults(func=_cmd_demo)
 
+    report = sub.add_parser("report", help="one HTML page: suite tables, runs' metrics, PSNR curves, velocity/stress/flow pictures")
+    report.add_argument("paths", nargs="+", metavar="RUN_OR_SUITE", help="run folders, suite folders (suite.json) or "
+                        "bench quality folders (quality.json)")
+    report.add_argument("--out", default="outputs/report/report.html", help="the HTML file (pictures also as PNGs beside it)")
+    report.add_argument("--no-pictures", action="store_true", help="tables and curves only (no model is loaded)")
+    _add_device_option(report)
+    report.set_defaults(func=_cmd_report)
+
+    view = sub.add_parser("view", help="interactive web viewer of a trained run (viser): free camera, time slider, fields",
+                          description="Serve a web page showing the run: a free camera rendered by pidg's renderer, a time "
+                          "slider (dataset time in [0, 1]) with play/pause, the training cameras, and velocity, stress, the "
+                          "dynamic/static split and depth where the run has them. Needs viser: pip install 'pidg[view]'.")
+    view.add_argument("run", help="the run's output folder")
+    view.add_argument("--port", type=int, default=8080, help="port to serve on (0: any free port)")
+    view.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every network interface)")
+    view.add_argument("--preview-scale", type=float, default=0.25,
+                      help="resolution while the camera moves, as a fraction of the browser's canvas (0.05-1)")
+    view.add_argument("--max-size", type=int, default=1600, help="largest side of a full-quality frame, in pixels")
+    view.add_argument("--no-cameras", action="store_true", help="do not read the dataset for the training cameras")
+    view.add_argument("--measure", nargs="?", const="800x800", default=None, metavar="WxH",
+                      help="print the frame times at this size (default 800x800) and exit, without a server")
+    view.add_argument("--repeats", type=int, default=5, help="frames timed per case with --measure")
+    _add_device_option(view)
+    view.set_defaults(func=_cmd_view)
+
+    export = sub.add_parser("export", help="the Gaussians at a time as a standard 3DGS PLY (SuperSplat, gsplat, 3DGS viewers)",
+                            description="Write the run's Gaussians at dataset time T in the 3DGS PLY layout (positions in "
+                            "the dataset's world units, logit opacity, log scales, wxyz quaternions, SH colour).")
+    when = export.add_mutually_exclusive_group(required=True)
+    when.add_argument("--time", type=float, default=None, metavar="T", help="dataset time in [0, 1] (0: first frame, 1: last)")
+    when.add_argument("--times", type=float, nargs="*", default=None, metavar="T",
+                      help="a sequence, one PLY per time, with frames.json; without values: one per training-frame interval")
+    export.add_argument("run", help="the run's output folder")
+    export.add_argument("--format", choices=["ply"], default="ply", help="file format (the 3DGS PLY layout)")
+    export.add_argument("--out", default=None, help="the PLY file (--time; default RUN/export/gaussians_tT.ply) or the "
+                        "folder (--times; default RUN/export/sequence)")
+    export.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], default=3,
+                        help="SH bands written (3: 45 f_rest values, what the original viewers expect)")
+    _add_device_option(export)
+    export.set_defaults(func=_cmd_export)
+
     bench = sub.add_parser("bench", help="benchmarks (not tests)")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     render = bench_sub.add_parser("render", help="rasterizer speed and memory: CPU kernel vs torch reference (CPU only)")
@@ -227,6 +324,28 @@ def build_parser() -> argparse.ArgumentParser:
                          help="ablation rows per scene (default: the config as given)")
     _add_run_options(quality, "SCENE [SCENE ...] ")
     quality.set_defaults(func=_cmd_bench_quality)
+
+    suite = bench_sub.add_parser("suite", help="the paper's tables: a named set of scenes x variants, one budget and seed")
+    suite.add_argument("name", choices=list(SUITES), help="; ".join(f"{k}: {v.description}" for k, v in SUITES.items()))
+    suite.add_argument("--data", required=True, help="folder holding the suite's scenes (each sub-folder that is a "
+                       "dataset of the suite's kind is a scene), or one scene folder")
+    suite.add_argument("--scenes", nargs="+", default=None, help="only these scenes (folder names)")
+    suite.add_argument("--variants", nargs="+", default=None, choices=list(ABLATION_VARIANTS), help="rows (default: the suite's)")
+    suite.add_argument("--out", default=None, help="output folder (default outputs/suite/NAME): suite.md, suite.json, one run per job")
+    suite.add_argument("--minutes", type=float, default=30.0, help="training time budget per job (0: none, --optim.iterations only)")
+    suite.add_argument("--downscale", default=None, help="factor or WxH, e.g. 400x400")
+    suite.add_argument("--ssim", choices=["zeros", "valid"], default="zeros",
+                       help="SSIM convention of the tables: zeros (zero-padded window, the 3DGS family's tables) or valid")
+    suite.add_argument("--integrator", choices=["midpoint", "rk4"], default="rk4", help="future suite: advection integrator")
+    suite.add_argument("--executor", choices=list(get_args(ExecutorName)), default="local",
+                       help="local: one job at a time here; process: a local process pool; ray: Ray tasks (pip install ray)")
+    suite.add_argument("--workers", type=int, default=2, help="process executor: jobs at a time")
+    suite.add_argument("--ray-address", default=None, help="ray executor: cluster address (auto: this machine's cluster; "
+                       "default: start a local Ray instance)")
+    suite.add_argument("--gpus-per-job", type=float, default=None, help="ray executor: GPUs per task (default 1 when the cluster has GPUs)")
+    suite.add_argument("--cpus-per-job", type=float, default=1.0, help="ray executor: CPUs per task")
+    _add_run_options(suite, "NAME --data DIR ")
+    suite.set_defaults(func=_cmd_bench_suite)
 
     step = bench_sub.add_parser("step", help="training-step rate and its breakdown per variant, interleaved, fixed Gaussian count")
     step.add_argument("scene", help="dataset folder")

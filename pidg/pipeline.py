@@ -16,6 +16,7 @@ from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data.scene import Frame, SceneData
 from pidg.device import Device, describe, rasterizer_for, resolve_device
 from pidg.evaluation.evaluate import evaluate_model
+from pidg.evaluation.future import evaluate_future
 from pidg.evaluation.images import colorize_scalar, save_png
 from pidg.evaluation.video import write_video
 from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images
@@ -63,9 +64,17 @@ def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test"), device:
 def evaluate_run(
     run_dir: Path, split: str = "test", lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), device: Device = "auto"
 ) -> dict:
-    """Metrics of a saved run on a split, written to RUN/eval_SPLIT/metrics.json."""
+    """Metrics of a saved run on a split, written to RUN/eval_SPLIT/metrics.json. A run trained for future
+    prediction (``data.train_until``) is also scored by each predictor on the split's future frames, in
+    RUN/eval_SPLIT_future/<predictor>/ (the result's ``future`` entry)."""
     run = load_run(run_dir, (split,), device)
-    return evaluate_and_save(run.model, run.scene, run.run_dir, split, lpips_nets, run.step)
+    result = evaluate_and_save(run.model, run.scene, run.run_dir, split, lpips_nets, run.step)
+    if run.config.data.train_until is not None and split != "train":
+        t_last = max(f.time for f in run.scene.train)
+        nets = lpips_nets if lpips_weights_available(lpips_nets) else ()
+        future = evaluate_future(run.model, run.scene.frames(split), t_last, run.run_dir / f"eval_{split}_future", nets)
+        result["future"] = {name: {"mean": r["mean"], "t_last": t_last} for name, r in future.items()}
+    return result
 
 
 def evaluate_and_save(

@@ -20,9 +20,11 @@ FLOORS: list[set[str]] = [
     {"pidg.data"},
     {"pidg.models"},
     {"pidg.physics", "pidg.flow"},
-    {"pidg.training", "pidg.evaluation"},
+    {"pidg.training", "pidg.evaluation", "pidg.export"},
     {"pidg.pipeline"},
     {"pidg.bench"},
+    {"pidg.report"},
+    {"pidg.viewer"},
     {"pidg.cli"},
 ]
 

@@ -70,4 +70,5 @@ def dataset_layout(root: Path | str) -> str:
 def load_scene(config: DataConfig) -> SceneData:
     """Load the dataset at ``config.path`` with the reader its contents call for."""
     reader = {"blender": read_blender, "hypernerf": read_hypernerf}[detect_format(config.root)]
-    return reader(config)
+    scene = reader(config)
+    return scene if config.train_until is None else scene.split_in_time(config.train_until)

@@ -22,7 +22,7 @@ from typing import Annotated, Literal
 import torch
 from torch import Tensor
 
-from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, validate_config
+from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, UNIT, validate_config
 from pidg.render.camera import Camera
 
 logger = logging.getLogger(__name__)
@@ -78,6 +78,9 @@ class DataConfig:
     """Splits to load, of train, val, test."""
     max_frames: Annotated[int, AT_LEAST_ONE] | None = None
     """Keep an evenly spaced subset of at most this many frames per split (tests, quick looks); none = all."""
+    train_until: Annotated[float, UNIT] | None = None
+    """Future prediction: train on frames with time <= this and evaluate (val, test) on frames with time > this, in
+    dataset time [0, 1] (the paper's protocol: 0.8); none = every frame of each split."""
     load_masks: bool = True
     """Read motion masks where the dataset ships them (they drive static/dynamic decoupling and the flow target)."""
     # A dynamic dataset without per-frame times is almost always a mistake, so it is an error unless allowed.
@@ -275,6 +278,21 @@ class SceneData:
     @property
     def test(self) -> list[Frame]:
         return self.frames("test")
+
+    def split_in_time(self, train_until: float) -> "SceneData":
+        """Future prediction: training frames with time <= ``train_until``, evaluation frames (val, test) after it.
+
+        Scene bounds and time normalisation stay those of the whole recording (they come from the cameras and the
+        frame list, not from pixels), so a split scene has the same coordinates and times as the full one.
+        """
+        splits = {
+            name: [f for f in frames if (f.time <= train_until) == (name == "train")] for name, frames in self.splits.items()
+        }
+        for name, frames in splits.items():
+            if self.splits[name] and not frames:
+                side = "at or before" if name == "train" else "after"
+                raise DatasetError(self.root, f"no {name} frame has a time {side} train_until={train_until}")
+        return replace(self, splits=splits, info={**self.info, "train_until": train_until})
 
     def times(self, split: str) -> Tensor:
         """[N] float32 times of a split's frames."""

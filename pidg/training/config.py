@@ -163,6 +163,9 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
     "full": {"physics.kind": "cmr", "flow.kind": "lpfm"},  # PIDG
     "nostress": {"physics.kind": "cmr", "material.stress": "false", "flow.kind": "none"},  # sigma == 0 ablation
     "lpfm": {"physics.kind": "none", "flow.kind": "lpfm"},  # flow matching without the momentum residual
+    # the paper's plug-in rows: the material field with L_CMR on another deformation network (a plain MLP)
+    "mlp": {"deformation.kind": "mlp", "physics.kind": "none", "flow.kind": "none"},
+    "mlp_cmr": {"deformation.kind": "mlp", "physics.kind": "cmr", "flow.kind": "none"},
 }
 
 def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLayout | None = None) -> TrainConfig:

