@@ -3,7 +3,9 @@
 * ``deformation``: the deformation field queried at the future time, as the paper does (the hash grid's and the
   decoder's extrapolation);
 * ``advection`` (runs with a material field): every Gaussian starts at its deformed position at the last training
-  time and moves with the field's velocity, integrated in time (:mod:`pidg.physics.advection`).
+  time and moves with the field's velocity, integrated in time (:mod:`pidg.physics.advection`);
+* ``hold``: the Gaussians frozen at the last training time, the zero-motion baseline that gives the other two a
+  scale (a predictor that does not beat it has learnt nothing about the future).
 
 The split into past and future is the data's (``DataConfig.train_until``): this module only predicts and scores.
 """
@@ -13,13 +15,15 @@ import json
 from pathlib import Path
 from typing import Sequence
 
+import torch
+
 from pidg.data.scene import Frame
 from pidg.evaluation.evaluate import evaluate_views
 from pidg.metrics import NetName
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.physics.advection import Advection, Integrator
 
-PREDICTORS = ("deformation", "advection")
+PREDICTORS = ("deformation", "advection", "hold")
 
 
 def evaluate_future(
@@ -33,7 +37,7 @@ def evaluate_future(
     progress: bool = False,
 ) -> dict[str, dict]:
     """Metrics of each predictor on ``frames`` (all after ``t_last``, the last training time), keyed by predictor
-    name; the advection entry is absent without a material field. With ``out_dir``, each predictor's renders and
+    name (see the module docstring); the advection entry is absent without a material field. With ``out_dir``, each predictor's renders and
     ``metrics.json`` go to ``out_dir/<predictor>/``."""
     early = [f.name for f in frames if f.time <= t_last]
     if early:
@@ -43,6 +47,9 @@ def evaluate_future(
     if model.material_field is not None:
         advection = Advection(model, t_last, method, max_step)
         renders["advection"] = lambda frame: model.render_state(advection.at(frame.time), frame.camera)
+    with torch.no_grad():
+        frozen = model.at(t_last)
+    renders["hold"] = lambda frame: model.render_state(frozen, frame.camera)
     results = {}
     for name, render in renders.items():
         where = None if out_dir is None else Path(out_dir) / name

@@ -111,18 +111,23 @@ def test_future_prediction_scores_the_deformation_and_the_advection(scenes_root,
     base.data = dataclasses.replace(base.data, train_until=0.7)
     jobs = make_jobs([scenes_root / "beta"], ["base", "cmr"], base, tmp_path, None, protocol="future", integrator="midpoint")
     rows = [r for job in jobs for r in run_job(job)]
-    assert [(r["variant"], r["predictor"]) for r in rows] == [("base", "deformation"), ("cmr", "deformation"), ("cmr", "advection")]
+    assert [(r["variant"], r["predictor"]) for r in rows] == [
+        ("base", "deformation"), ("base", "hold"), ("cmr", "deformation"), ("cmr", "advection"), ("cmr", "hold")
+    ]
     assert all(r["t_last"] <= 0.7 and r["psnr"] > 5 for r in rows)
     saved = json.loads((tmp_path / "beta" / "cmr" / "eval_future" / "advection" / "metrics.json").read_text())
     assert saved["integrator"] == "midpoint" and all(v["time"] > 0.7 for v in saved["per_view"])
     tables = build_tables(rows, ("psnr", "ssim"))
-    assert tables["methods"] == ["PIDG w/o (CMR + LPFM) [deformation]", "PIDG w/o LPFM [deformation]", "PIDG w/o LPFM [advection]"]
+    assert tables["methods"][:4] == ["PIDG w/o (CMR + LPFM) [deformation]", "PIDG w/o (CMR + LPFM) [hold]",
+                                     "PIDG w/o LPFM [deformation]", "PIDG w/o LPFM [advection]"]
+    # holding the last trained state still is the zero-motion baseline: it differs from the deformation's extrapolation
+    assert rows[0]["psnr"] != rows[1]["psnr"]
     with pytest.raises(ValueError, match="train_until"):
         make_jobs([scenes_root / "beta"], ["base"], tiny_train_config(), tmp_path, None, protocol="future")
     # pidg eval on such a run scores the future frames too, with the same figures
     result = evaluate_run(tmp_path / "beta" / "cmr", lpips_nets=(), device="cpu")
-    assert set(result["future"]) == {"deformation", "advection"}
-    assert result["future"]["deformation"]["mean"]["psnr"] == pytest.approx(rows[1]["psnr"], abs=1e-6)
+    assert set(result["future"]) == {"deformation", "advection", "hold"}
+    assert result["future"]["deformation"]["mean"]["psnr"] == pytest.approx(rows[2]["psnr"], abs=1e-6)
 
 
 # ---- executors (job functions at module level: they are pickled to workers) -------------------------------------
