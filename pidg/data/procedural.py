@@ -48,6 +48,7 @@ from pidg.data.ply import write_ply_points
 from pidg.data.scene import Background, Frame, PointCloud, SceneData, compute_bounds
 from pidg.render.api import rasterize
 from pidg.render.camera import Camera
+from pidg.render.projection import rotmat_to_quat
 from pidg.render.scenes import GaussianScene
 
 InitPoints = Literal["surface", "random"]
@@ -111,31 +112,6 @@ class ProceduralSceneConfig:
 # ---------------------------------------------------------------------------------------------------------------
 # small geometry helpers
 # ---------------------------------------------------------------------------------------------------------------
-def rotmat_to_quat(r: Tensor) -> Tensor:
-    """Quaternions [N, 4] (w, x, y, z) from rotation matrices [N, 3, 3], stable for every angle.
-
-    Each of the four standard formulas divides by one quaternion component; the one with the largest
-    component is used (as in PyTorch3D's ``matrix_to_quaternion``).
-    """
-    m = r.reshape(-1, 9).unbind(-1)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
-    q_abs = torch.stack(
-        [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
-    ).clamp_min(0).sqrt()
-    candidates = torch.stack(
-        [
-            torch.stack([q_abs[:, 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),
-            torch.stack([m21 - m12, q_abs[:, 1] ** 2, m10 + m01, m02 + m20], dim=-1),
-            torch.stack([m02 - m20, m10 + m01, q_abs[:, 2] ** 2, m12 + m21], dim=-1),
-            torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[:, 3] ** 2], dim=-1),
-        ],
-        dim=1,
-    ) / (2.0 * q_abs.clamp_min(0.1)).unsqueeze(-1)
-    best = q_abs.argmax(dim=-1)
-    q = candidates[torch.arange(len(best)), best]
-    return q / q.norm(dim=-1, keepdim=True)
-
-
 def _tangent_frame(normal: Tensor) -> Tensor:
     """Right-handed frames [N, 3, 3] with columns (t1, t2, n), for flat splats lying on a surface."""
     helper = torch.where(

@@ -48,6 +48,31 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ).reshape(quats.shape[:-1] + (3, 3))
 
 
+def rotmat_to_quat(r: Tensor) -> Tensor:
+    """Quaternions [N, 4] (w, x, y, z) from rotation matrices [N, 3, 3], stable for every angle.
+
+    Each of the four standard formulas divides by one quaternion component; the one with the largest
+    component is used (as in PyTorch3D's ``matrix_to_quaternion``).
+    """
+    m = r.reshape(-1, 9).unbind(-1)
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
+    q_abs = torch.stack(
+        [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
+    ).clamp_min(0).sqrt()
+    candidates = torch.stack(
+        [
+            torch.stack([q_abs[:, 0] ** 2, m21 - m12, m02 - m20, m10 - m01], dim=-1),
+            torch.stack([m21 - m12, q_abs[:, 1] ** 2, m10 + m01, m02 + m20], dim=-1),
+            torch.stack([m02 - m20, m10 + m01, q_abs[:, 2] ** 2, m12 + m21], dim=-1),
+            torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[:, 3] ** 2], dim=-1),
+        ],
+        dim=1,
+    ) / (2.0 * q_abs.clamp_min(0.1)).unsqueeze(-1)
+    best = q_abs.argmax(dim=-1)
+    q = candidates[torch.arange(len(best)), best]
+    return q / q.norm(dim=-1, keepdim=True)
+
+
 def rotate_by_inverse(quats: Tensor, v: Tensor) -> Tensor:
     """R^T v for the rotations of quaternions [N, 4] (w, x, y, z; normalised here) and vectors [N, 3].
 

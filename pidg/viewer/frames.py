@@ -24,6 +24,7 @@ from pidg.evaluation.visualize import dynamic_split_image, material_field_images
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import Camera
+from pidg.render.projection import quat_to_rotmat, rotmat_to_quat
 
 COLOUR = "colour"
 DEPTH = "depth"
@@ -45,42 +46,12 @@ def view_modes(model: DynamicGaussians) -> list[str]:
 
 
 # ---- cameras ---------------------------------------------------------------------------------------------------
-def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
-    """3x3 rotation of a (w, x, y, z) quaternion (normalised first)."""
-    w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])  # fmt: skip
-
-
-def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) unit quaternion of a 3x3 rotation (Shepperd's method: stable for every rotation)."""
-    m = np.asarray(rotation, np.float64)
-    trace = np.trace(m)
-    if trace > 0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    return q / np.linalg.norm(q) * (1.0 if q[0] >= 0 else -1.0)
-
-
 def camera_from_pose(
     wxyz: np.ndarray, position: np.ndarray, fov_y: float, width: int, height: int, near: float = 0.01, far: float = 1e10
 ) -> Camera:
     """A pidg camera from a viser pose: rotation ``wxyz`` and ``position`` of the camera in the world (OpenCV
     axes), vertical field of view ``fov_y`` in radians, square pixels."""
-    rotation = quat_to_matrix(wxyz)  # camera -> world
+    rotation = quat_to_rotmat(torch.as_tensor(np.asarray(wxyz, np.float64))[None])[0].numpy()  # camera -> world
     w2c = np.eye(4)
     w2c[:3, :3] = rotation.T
     w2c[:3, 3] = -rotation.T @ np.asarray(position, np.float64)
@@ -93,7 +64,8 @@ def pose_of_camera(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """(wxyz, position) of a pidg camera in the world, as viser wants them for a frustum or the browser camera."""
     w2c = camera.world_to_camera.detach().to(torch.float64).cpu().numpy()
     rotation = w2c[:3, :3].T
-    return matrix_to_quat(rotation), -rotation @ w2c[:3, 3]
+    wxyz = rotmat_to_quat(torch.from_numpy(rotation)[None])[0].numpy()
+    return wxyz * (1.0 if wxyz[0] >= 0 else -1.0), -rotation @ w2c[:3, 3]  # the one with w >= 0
 
 
 # ---- progressive quality ------------------------------------------------------------------------------------------

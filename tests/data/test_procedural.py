@@ -23,7 +23,6 @@ from pidg.data.procedural import (
     contact_sheet,
     make_procedural_scene,
     motion_at,
-    rotmat_to_quat,
     write_procedural_dataset,
 )
 from pidg.data.scene import SceneData
@@ -215,13 +214,6 @@ def test_initial_points():
 # ---------------------------------------------------------------------------------------------------------------
 # ground-truth Gaussians
 # ---------------------------------------------------------------------------------------------------------------
-def test_rotmat_to_quat_round_trip():
-    q = torch.randn(500, 4, dtype=torch.float64)
-    q = torch.cat([q, torch.tensor([[0.0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [1, 0, 0, 0]], dtype=torch.float64)])
-    r = quat_to_rotmat(q)
-    torch.testing.assert_close(quat_to_rotmat(rotmat_to_quat(r)), r, atol=1e-10, rtol=0)
-
-
 def test_deformation_is_identity_at_zero_and_jacobian_is_exact():
     gen = ProceduralScene(SMALL)
     ring = gen.means[gen.is_dynamic]

@@ -4,7 +4,9 @@ import math
 import torch
 
 from pidg.render.camera import Camera
-from pidg.render.projection import ALPHA_MIN, EPS2D, covariance_3d, project_gaussians, quat_to_rotmat, rotate_by_inverse
+from pidg.render.projection import (
+    ALPHA_MIN, EPS2D, covariance_3d, project_gaussians, quat_to_rotmat, rotate_by_inverse, rotmat_to_quat,
+)
 from pidg.render.scenes import orbit_camera, random_scene
 
 
@@ -89,3 +91,10 @@ def test_culling():
     proj = project_gaussians(means, torch.tensor([[1.0, 0, 0, 0]]).expand(6, 4), torch.full((6, 3), 0.05), opac, camera)
     assert proj.visible.tolist() == [False, False, False, False, True, False]
     assert torch.isfinite(proj.means2d).all() and torch.isfinite(proj.conics).all()
+
+
+def test_rotmat_to_quat_round_trip():
+    q = torch.randn(500, 4, dtype=torch.float64)
+    q = torch.cat([q, torch.tensor([[0.0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [1, 0, 0, 0]], dtype=torch.float64)])
+    r = quat_to_rotmat(q)
+    torch.testing.assert_close(quat_to_rotmat(rotmat_to_quat(r)), r, atol=1e-10, rtol=0)

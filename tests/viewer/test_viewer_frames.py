@@ -12,8 +12,9 @@ from pidg.cli import main
 from pidg.evaluation.images import to_uint8
 from pidg.export import open_run_model
 from pidg.render import Camera
+from pidg.render.projection import quat_to_rotmat, rotmat_to_quat
 from pidg.viewer import Quality, ViewRenderer, camera_from_pose, pose_of_camera, view_modes
-from pidg.viewer.frames import COLOUR, DEPTH, SPLIT, STRESS, VELOCITY_ARROWS, VELOCITY_COLOURS, matrix_to_quat, quat_to_matrix
+from pidg.viewer.frames import COLOUR, DEPTH, SPLIT, STRESS, VELOCITY_ARROWS, VELOCITY_COLOURS
 from pidg.viewer.server import cameras_focus, training_views
 
 
@@ -24,11 +25,11 @@ def test_a_camera_survives_the_trip_through_a_viser_pose():
     torch.testing.assert_close(again.world_to_camera, camera.world_to_camera, atol=1e-5, rtol=0)
     assert (again.fx, again.fy, again.cx, again.cy) == pytest.approx((camera.fx, camera.fy, camera.cx, camera.cy))
     np.testing.assert_allclose(position, camera.camera_center.numpy(), atol=1e-5)
-    # quaternions: every branch of the matrix -> quaternion conversion
+    # quaternions (the viewer uses pidg's pair): every branch of the matrix -> quaternion conversion
     for angle, axis in ((0.3, (1, 0, 0)), (3.1, (1, 0, 0)), (3.1, (0, 1, 0)), (3.1, (0, 0, 1)), (2.0, (1, 2, 3))):
         axis = np.array(axis, float) / np.linalg.norm(axis)
-        q = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
-        np.testing.assert_allclose(matrix_to_quat(quat_to_matrix(q)), q, atol=1e-9)
+        q = torch.tensor(np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis]))
+        np.testing.assert_allclose(rotmat_to_quat(quat_to_rotmat(q[None]))[0].numpy(), q.numpy(), atol=1e-9)
 
 
 def test_previews_are_a_fraction_of_the_canvas_and_full_frames_are_capped():
