@@ -16,6 +16,7 @@ from pidg.evaluation.flow_vis import flow_quiver, flow_rgb_tensor
 from pidg.evaluation.images import colorize_scalar
 from pidg.flow import FlowConfig, FlowPair, decode_flows, render_pair_flows
 from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.models.material_field import stress_magnitude
 
 MIN_ALPHA = 0.5  # pixels less opaque than this show no field value (they mix surface and background)
 
@@ -51,8 +52,7 @@ def material_field_images(
     v, sigma = model.field_values(means, frame.time)
     uv, _ = frame.camera.project_points(means)
     uv_next, _ = frame.camera.project_points(means + v * dt)
-    stress = sigma[:, :3].square().sum(-1) + 2.0 * sigma[:, 3:].square().sum(-1)  # |sigma|_F^2 of the symmetric matrix
-    features = torch.cat([uv_next - uv, stress.sqrt().unsqueeze(-1)], dim=-1)
+    features = torch.cat([uv_next - uv, stress_magnitude(sigma).unsqueeze(-1)], dim=-1)
     out = model.render_state(state, frame.camera, features)
     values, valid = _per_pixel(out.features, out.alpha)
     flow, stress_img = values[..., :2], values[..., 2]

@@ -129,6 +129,12 @@ ACTIVATION_VALUES: dict[Activation, Callable[[Tensor], Tensor]] = {"tanh": torch
 # ---------------------------------------------------------------------------------------------------------------
 # plane lookup
 # ---------------------------------------------------------------------------------------------------------------
+def stress_magnitude(sigma: Tensor) -> Tensor:
+    """|sigma|_F [N] of symmetric stresses given by their six components [N, 6] (xx, yy, zz, xy, xz, yz): the
+    off-diagonal ones count twice."""
+    return (sigma[:, :3].square().sum(-1) + 2.0 * sigma[:, 3:].square().sum(-1)).sqrt()
+
+
 def plane_lookup(planes: Tensor, pa: Tensor, pb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Bilinear lookup of K planes with its analytic derivatives.
 

@@ -23,6 +23,7 @@ from pidg.evaluation.images import colorize_scalar, to_uint8
 from pidg.evaluation.visualize import dynamic_split_image, material_field_images
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.models.material_field import stress_magnitude
 from pidg.render import Camera
 from pidg.render.projection import quat_to_rotmat, rotmat_to_quat
 
@@ -133,7 +134,7 @@ class ViewRenderer:
             values = []
             for t in (0.0, 0.25, 0.5, 0.75, 1.0):
                 _, sigma = self.model.field_values(self.model.at(t).means, t)
-                values.append((sigma[:, :3].square().sum(-1) + 2.0 * sigma[:, 3:].square().sum(-1)).sqrt())
+                values.append(stress_magnitude(sigma))
             self._stress_scale = max(float(torch.quantile(torch.cat(values).float().cpu(), 0.99)), 1e-12)
         return self._stress_scale
 

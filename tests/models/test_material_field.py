@@ -4,7 +4,7 @@ import torch
 from pidg.models.deformation.base import Bounds
 from pidg.models.gaussians import GaussianModel
 from pidg.models.jet import FieldJet, jet_from_function
-from pidg.models.material_field import GROUP_EMBEDDING, MaterialField, MaterialFieldConfig, plane_lookup
+from pidg.models.material_field import GROUP_EMBEDDING, MaterialField, MaterialFieldConfig, plane_lookup, stress_magnitude
 from pidg.physics import PhysicsConfig
 
 JET_FIELDS = ("v", "sigma", "dv_dx", "dv_dt", "dsigma_dx")
@@ -210,3 +210,10 @@ def test_config_validation():
     with pytest.raises(ValueError, match="num_particles"):
         MaterialField(Bounds(), 0, MaterialFieldConfig())
     assert not PhysicsConfig().active(100) and PhysicsConfig(kind="cmr", start=10).active(10)
+
+
+def test_stress_magnitude_is_the_frobenius_norm_of_the_symmetric_matrix():
+    sigma = torch.randn(7, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    xx, yy, zz, xy, xz, yz = sigma.unbind(-1)
+    full = torch.stack([torch.stack([xx, xy, xz], -1), torch.stack([xy, yy, yz], -1), torch.stack([xz, yz, zz], -1)], -2)
+    torch.testing.assert_close(stress_magnitude(sigma), torch.linalg.matrix_norm(full), rtol=1e-12, atol=0)
