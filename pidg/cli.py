@@ -94,12 +94,15 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"), device=args.device)
+    result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"), device=args.device,
+                          motion_gt=args.motion_gt, motion_radius=args.motion_radius)
     mean = result["mean"]
     print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
     for name, future in result.get("future", {}).items():
         print(f"future ({name} after t={future['t_last']:.3f}): "
               + " ".join(f"{k}={v:.4f}" for k, v in future["mean"].items() if v is not None))
+    if "motion_gt" in result:
+        print(f"{result['motion_gt'].summary()} -> {Path(args.run) / f'eval_{args.split}' / 'motion_gt.json'}")
     return 0
 
 
@@ -247,6 +250,12 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--split", default="test", help="train, val or test")
     ev.add_argument("--lpips", nargs="*", default=["alex", "vgg"], choices=[*get_args(NetName), "none"],
                     help="LPIPS backbones; `none` (or no value) skips LPIPS")
+    ev.add_argument("--motion-gt", action="store_true",
+                    help="also score the learned motion against the dataset's ground-truth motion (DATASET/motion_gt): "
+                    "flow end-point errors and 3D velocity errors -> RUN/eval_SPLIT/motion_gt.json")
+    ev.add_argument("--motion-radius", type=float, default=None, metavar="R",
+                    help="--motion-gt: largest distance (world units) from a ground-truth vertex to its Gaussian "
+                    "(default: 2%% of the diagonal of the ground-truth vertices' bounding box)")
     _add_device_option(ev)
     ev.set_defaults(func=_cmd_eval)
 

@@ -12,11 +12,13 @@ import torch
 from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE, load_checkpoint
 from pidg.config_tools import apply_overrides, load_config
 from pidg.data import DataConfig, load_scene
+from pidg.data.motion_gt import MotionGroundTruth, read_motion_gt
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data.scene import Frame, SceneData
 from pidg.device import Device, describe, rasterizer_for, resolve_device
 from pidg.evaluation.evaluate import evaluate_model
 from pidg.evaluation.future import evaluate_future
+from pidg.evaluation.motion import MotionEvaluation, evaluate_motion
 from pidg.evaluation.images import colorize_scalar, save_png
 from pidg.evaluation.video import write_video
 from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images
@@ -62,19 +64,39 @@ def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test"), device:
 
 
 def evaluate_run(
-    run_dir: Path, split: str = "test", lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), device: Device = "auto"
+    run_dir: Path, split: str = "test", lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), device: Device = "auto",
+    motion_gt: bool = False, motion_radius: float | None = None,
 ) -> dict:
     """Metrics of a saved run on a split, written to RUN/eval_SPLIT/metrics.json. A run trained for future
     prediction (``data.train_until``) is also scored by each predictor on the split's future frames, in
-    RUN/eval_SPLIT_future/<predictor>/ (the result's ``future`` entry)."""
+    RUN/eval_SPLIT_future/<predictor>/ (the result's ``future`` entry). With ``motion_gt``, the learned motion is
+    scored against the dataset's ground-truth motion too (:func:`evaluate_motion_and_save`; the result's
+    ``motion_gt`` entry); a dataset without it fails, naming the missing file, before anything is evaluated."""
     run = load_run(run_dir, (split,), device)
+    truth = read_motion_gt(run.scene.root) if motion_gt else None
     nets = usable_lpips_nets(lpips_nets)
     result = evaluate_and_save(run.model, run.scene, run.run_dir, split, nets, run.step)
     if run.config.data.train_until is not None and split != "train":
         t_last = max(f.time for f in run.scene.train)
         future = evaluate_future(run.model, run.scene.frames(split), t_last, run.run_dir / f"eval_{split}_future", nets)
         result["future"] = {name: {"mean": r["mean"], "t_last": t_last} for name, r in future.items()}
+    if truth is not None:
+        result["motion_gt"] = evaluate_motion_and_save(run.model, run.scene, run.run_dir, split, truth, motion_radius)
     return result
+
+
+def evaluate_motion_and_save(
+    model: DynamicGaussians, scene: SceneData, run_dir: Path, split: str = "test", truth: MotionGroundTruth | None = None,
+    radius: float | None = None,
+) -> MotionEvaluation:
+    """The model's motion on a split against the scene's ground-truth motion (``truth``, else read from the
+    dataset folder; :mod:`pidg.evaluation.motion`), written to RUN/eval_SPLIT/motion_gt.json."""
+    truth = truth if truth is not None else read_motion_gt(scene.root)
+    evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius)
+    out_dir = Path(run_dir) / f"eval_{split}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "motion_gt.json").write_text(json.dumps(evaluation.to_dict(), indent=2))
+    return evaluation
 
 
 def evaluate_and_save(

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Callable
 
 from pidg.bench.executors import run_local
-from pidg.bench.suite import crashed_job, make_jobs, run_job
+from pidg.bench.suite import MOTION, crashed_job, make_jobs, run_job
 from pidg.training.config import TrainConfig
 
 
@@ -39,13 +39,20 @@ def run_quality_bench(
     return rows
 
 
+#: Columns against ground-truth motion, shown when a scene carries it (pidg.evaluation.motion): motion-flow,
+#: velocity-flow and zero-motion EPE (px), relative 3D velocity error of the deformation and of v, vertex coverage.
+MOTION_COLUMNS = tuple((key, short, fmt) for (key, _, fmt), short in
+                       zip(MOTION, ("gtEPE-m", "gtEPE-v", "gtEPE-0", "relV-def", "relV-v", "cover"), strict=True))
+
+
 def format_table(rows: list[dict]) -> str:
     def f(v, fmt):
         return format(v, fmt) if isinstance(v, (int, float)) else "-"
 
+    motion = any(k in r for r in rows for k, _, _ in MOTION_COLUMNS)  # a scene carries ground-truth motion
     lines = [
         f"{'scene':<15}{'variant':>9}{'PSNR':>8}{'SSIM':>8}{'LPIPS-A':>9}{'LPIPS-V':>9}{'min':>7}{'iters':>7}"
-        f"{'it/s':>7}{'Gaussians':>10}{'CMR':>10}{'EPE-v':>8}"
+        f"{'it/s':>7}{'Gaussians':>10}{'CMR':>10}{'EPE-v':>8}" + ("".join(f"{name:>9}" for _, name, _ in MOTION_COLUMNS) if motion else "")
     ]
     for r in rows:
         if r.get("error"):
@@ -53,8 +60,9 @@ def format_table(rows: list[dict]) -> str:
             continue
         lines.append(
             f"{r['scene']:<15}{r.get('variant', '-'):>9}{f(r['psnr'], '.2f'):>8}{f(r['ssim'], '.4f'):>8}"
-            f"{f(r['lpips_alex'], '.4f'):>9}{f(r['lpips_vgg'], '.4f'):>9}{f(r['train_minutes'], '.1f'):>7}"
+            f"{f(r.get('lpips_alex'), '.4f'):>9}{f(r.get('lpips_vgg'), '.4f'):>9}{f(r['train_minutes'], '.1f'):>7}"
             f"{r['iterations']:>7}{f(r['iterations_per_second'], '.2f'):>7}{r['gaussians']:>10}"
             f"{f(r.get('cmr_final'), '.3g'):>10}{f(r.get('velocity_flow_epe'), '.2f'):>8}"
+            + ("".join(f"{f(r.get(k), fmt):>9}" for k, _, fmt in MOTION_COLUMNS) if motion else "")
         )
     return "\n".join(lines)

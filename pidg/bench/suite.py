@@ -30,12 +30,13 @@ import torch
 from pidg.bench.executors import run_local
 from pidg.config_tools import apply_overrides, from_jsonable, to_jsonable
 from pidg.data import dataset_layout, detect_format, load_scene
+from pidg.data.motion_gt import has_motion_gt
 from pidg.data.scene import parse_downscale
 from pidg.evaluation.evaluate import flow_end_point_errors
 from pidg.evaluation.future import evaluate_future
 from pidg.flow import open_flow_cache
 from pidg.metrics import SSIM_KEYS, NetName, SSIMPadding, lpips_weights_available
-from pidg.pipeline import evaluate_and_save
+from pidg.pipeline import evaluate_and_save, evaluate_motion_and_save
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig
 from pidg.training.run_folder import claim_run_folder
 from pidg.training.trainer import Trainer
@@ -212,7 +213,10 @@ def _train_and_evaluate(job: Job) -> list[dict[str, Any]]:
     nets: tuple[NetName, ...] = tuple(job.lpips_nets)  # type: ignore[assignment]
     if job.protocol == "interpolation":
         metrics = evaluate_and_save(model, trainer.scene, config.output.dir, "test", nets, trainer.step)
-        return [{**common, **metrics["mean"], "render_fps": metrics["render_fps"]}]
+        motion = {}
+        if has_motion_gt(config.data.root):  # scored against the truth too (RUN/eval_test/motion_gt.json)
+            motion = evaluate_motion_and_save(model, trainer.scene, config.output.dir, "test").columns()
+        return [{**common, **metrics["mean"], "render_fps": metrics["render_fps"], **motion}]
     t_last = max(f.time for f in trainer.scene.train)
     results = evaluate_future(
         model, trainer.scene.test, t_last, config.output.dir / "eval_future", nets, job.integrator  # type: ignore[arg-type]
@@ -255,6 +259,10 @@ LOWER_IS_BETTER = {"lpips_alex", "lpips_vgg"}
 EFFICIENCY = (("train_minutes", "minutes", ".1f"), ("iterations_per_second", "it/s", ".2f"), ("gaussians", "Gaussians", ".0f"),
               ("peak_rss_mb", "peak RSS MB", ".0f"), ("peak_gpu_memory_mb", "peak GPU MB", ".0f"),
               ("render_fps", "render FPS", ".1f"))
+#: Motion against ground-truth motion (scenes that carry it: pidg.evaluation.motion), mean over those scenes.
+MOTION = (("gt_motion_flow_epe", "motion-flow EPE px", ".2f"), ("gt_velocity_flow_epe", "velocity-flow EPE px", ".2f"),
+          ("gt_zero_motion_epe", "zero-motion EPE px", ".2f"), ("gt_velocity_rel_deformation", "3D velocity rel. error, deformation", ".3f"),
+          ("gt_velocity_rel_field", "3D velocity rel. error, v", ".3f"), ("gt_coverage", "vertex coverage", ".3f"))
 SSIM_NAMES = {"zeros": "SSIM: zero-padded Gaussian window (the 3DGS family's tables)",
               "valid": "SSIM: valid filtering (Wang et al. 2004, skimage)"}
 
@@ -296,13 +304,16 @@ def build_tables(rows: Sequence[dict[str, Any]], metrics: Sequence[str], ssim: S
             values = [v[k] for v in table.values() if _finite(v.get(k))]
             if values:
                 best[column][k] = min(values) if k in LOWER_IS_BETTER else max(values)
-    efficiency = {}
+    efficiency, motion = {}, {}
     for m in methods:
         mine = [r for r in good if row_label(r) == m]
         efficiency[m] = {k: _mean([r.get(k) for r in mine]) for k, _, _ in EFFICIENCY}
+        motion[m] = {k: _mean([r.get(k) for r in mine]) for k, _, _ in MOTION}
+    if not any(_finite(v) for values in motion.values() for v in values.values()):
+        motion = {}  # no scene carries ground-truth motion: no such table
     failures = [{"scene": r["scene"], "method": row_label(r), "error": r["error"]} for r in rows if r.get("error")]
     return {"scenes": scenes, "methods": methods, "metrics": keys, "ssim": ssim, "cells": cells, "average": average,
-            "best": best, "efficiency": efficiency, "failures": failures}
+            "best": best, "efficiency": efficiency, "motion": motion, "failures": failures}
 
 
 def _finite(v: Any) -> bool:
@@ -342,11 +353,20 @@ def quality_grid(tables: dict[str, Any]) -> Grid:
 
 def efficiency_grid(tables: dict[str, Any]) -> Grid:
     """Mean training time, step rate, Gaussians, peak memory and render speed per method."""
-    header = ["method"] + [name for _, name, _ in EFFICIENCY]
+    return _means_grid(tables["methods"], tables["efficiency"], EFFICIENCY)
+
+
+def motion_grid(tables: dict[str, Any]) -> Grid:
+    """Motion against ground-truth motion per method (mean over the scenes that carry it)."""
+    return _means_grid(tables["methods"], tables["motion"], MOTION)
+
+
+def _means_grid(methods: Sequence[str], means: dict[str, dict[str, Any]], columns: Sequence[tuple[str, str, str]]) -> Grid:
+    header = ["method"] + [name for _, name, _ in columns]
     rows = []
-    for m in tables["methods"]:
-        e = tables["efficiency"][m]
-        rows.append([(m, False)] + [(format(e[k], f) if _finite(e[k]) else "-", False) for k, _, f in EFFICIENCY])
+    for m in methods:
+        e = means[m]
+        rows.append([(m, False)] + [(format(e[k], f) if _finite(e[k]) else "-", False) for k, _, f in columns])
     return header, rows
 
 
@@ -362,6 +382,9 @@ def tables_markdown(tables: dict[str, Any], title: str, header: Sequence[str] = 
              "an average needs every scene.", ""]
     lines += grid_markdown(quality_grid(tables))
     lines += ["", "Efficiency (mean over the method's scenes):", ""] + grid_markdown(efficiency_grid(tables))
+    if tables.get("motion"):
+        lines += ["", "Motion against ground-truth motion (mean over the scenes that carry it; EPE on visible dynamic "
+                  "pixels, 3D velocity of the Gaussians nearest to the true vertices):", ""] + grid_markdown(motion_grid(tables))
     if tables["failures"]:
         lines += ["", "Failed jobs:", ""] + [f"- {f['scene']} / {f['method']}: {f['error']}" for f in tables["failures"]]
     return "\n".join(lines) + "\n"

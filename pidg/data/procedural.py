@@ -44,6 +44,15 @@ from torch import Tensor
 
 from pidg.config_tools import validate_config
 from pidg.data.io import composite_rgba_float
+from pidg.data.motion_gt import (
+    FrameFlow,
+    MotionObject,
+    VertexMotion,
+    composited_flow,
+    projected_displacement,
+    write_frame_flow,
+    write_motion_gt,
+)
 from pidg.data.ply import write_ply_points
 from pidg.data.scene import Background, Frame, PointCloud, SceneData, compute_bounds
 from pidg.render.api import rasterize
@@ -61,6 +70,7 @@ CAMERA_TARGET = (0.0, 0.0, -0.1)
 _LIGHT = torch.tensor([0.35, -0.45, 0.82], dtype=torch.float64)  # baked-shading light direction (normalised below)
 # Share of the Gaussians per part; the torus gets the rest.
 _FLOOR_SHARE, _BALL_SHARE = 0.35, 0.10
+GT_VELOCITY_STEP = 1e-5  # dataset time: central differences of the analytic deformation (float64)
 
 
 @dataclass(frozen=True)
@@ -343,6 +353,35 @@ class ProceduralScene:
             features=f32(dyn.unsqueeze(-1)),
         )
 
+    # ---- ground-truth motion (pidg.data.motion_gt) -------------------------------------------------------------
+    @property
+    def frame_interval(self) -> float:
+        """Dataset time between consecutive training frames (two steps of the common time grid): the interval of
+        the ground-truth flow, equal to a model's ``TimeAxis.frame_interval`` trained on this scene."""
+        return 1.0 / (self.config.n_train - 1)
+
+    def ring_positions(self, t: float) -> Tensor:
+        """Centres [V, 3] float64 of the ring's ground-truth Gaussians at time t (the ground-truth "vertices")."""
+        return self.deform(self.means[self.is_dynamic], t)[0]
+
+    def ring_velocities(self, t: float, h: float = GT_VELOCITY_STEP) -> Tensor:
+        """dx/dt [V, 3] float64 of the ring's Gaussian centres, world units per unit of dataset time: central
+        differences of the analytic deformation at t +- h (in float64 the error is ~1e-8 of the speed)."""
+        return (self.ring_positions(t + h) - self.ring_positions(t - h)) / (2.0 * h)
+
+    def vertex_motion(self, times: Sequence[float]) -> VertexMotion:
+        """The ring's centres and velocities at the given times (sorted, repeats dropped); no faces."""
+        grid = np.asarray(sorted(set(times)), dtype=np.float64)
+        positions = np.stack([self.ring_positions(float(t)).numpy() for t in grid]).astype(np.float32)
+        velocities = np.stack([self.ring_velocities(float(t)).numpy() for t in grid]).astype(np.float32)
+        return VertexMotion(grid, positions, velocities, np.zeros((0, 3), dtype=np.int64))
+
+    def motion_flow(self, t: float, camera: Camera, dt: float | None = None) -> FrameFlow:
+        """The ground-truth flow of the view at time t (see :meth:`render_frame`)."""
+        flow = self.render_frame(t, camera, True, dt)[2]
+        assert flow is not None
+        return flow
+
     # ---- capture --------------------------------------------------------------------------------------------
     def schedule(self) -> dict[str, list[tuple[int, float]]]:
         """(frame number, time) per split on the common grid t = k / (2 (n_train - 1)).
@@ -405,10 +444,30 @@ class ProceduralScene:
         The mask is where the ring is visible: its composited "is dynamic" channel exceeds 0.5, i.e. the ring
         makes up most of the pixel.
         """
+        rgba, mask, _ = self.render_frame(t, camera, with_flow=False)
+        return rgba, mask
+
+    def render_frame(
+        self, t: float, camera: Camera, with_flow: bool = True, dt: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray, FrameFlow | None]:
+        """:meth:`render`, and with ``with_flow`` the view's ground-truth flow from the same rasterizer pass.
+
+        The flow runs from t to t + dt (default: one training-frame interval) with ``camera`` held fixed: each
+        Gaussian's projected centre displacement, composited with the colour weights beside the "is dynamic"
+        channel (so ``dynamic`` is the motion mask); NaN where the composited alpha < 0.5, exactly 0 where only
+        static Gaussians are seen.
+        """
         g = self.gaussians(t)
+        features = g.features
+        dt = self.frame_interval if dt is None else dt
+        if with_flow:
+            dyn = self.is_dynamic
+            start, end = self.means.clone(), self.means.clone()
+            start[dyn], end[dyn] = self.ring_positions(t), self.ring_positions(t + dt)
+            features = torch.cat([features, projected_displacement(camera, start, end).to(torch.float32)], dim=-1)
         with torch.no_grad():
             out = rasterize(
-                g.means, g.quats, g.opacities, g.colors, camera, scales=g.scales, features=g.features, backend="cpu"
+                g.means, g.quats, g.opacities, g.colors, camera, scales=g.scales, features=features, backend="cpu"
             )
         assert out.features is not None
         alpha = out.alpha.clamp(0, 1)
@@ -416,7 +475,9 @@ class ProceduralScene:
         rgba = torch.cat([straight.clamp(0, 1), alpha.unsqueeze(-1)], dim=-1)
         rgba_u8 = torch.round(rgba * 255.0).to(torch.uint8).numpy()
         rgba_u8[rgba_u8[..., 3] == 0, :3] = 0  # fully transparent: no colour (keeps PNGs small and tidy)
-        return rgba_u8, (out.features[..., 0] > 0.5).numpy()
+        mask = (out.features[..., 0] > 0.5).numpy()
+        flow = FrameFlow(composited_flow(out.features[..., 1:], out.alpha).numpy(), mask, t, t + dt) if with_flow else None
+        return rgba_u8, mask, flow
 
     def initial_points(self) -> PointCloud:
         """The initial point cloud, standing in for the SfM points of a real capture.
@@ -456,6 +517,7 @@ class _Rendered:
     camera: Camera
     rgba: np.ndarray  # [H, W, 4] uint8, straight alpha
     mask: np.ndarray  # [H, W] bool
+    flow: FrameFlow | None = None  # ground-truth motion flow (written datasets only)
 
     @property
     def file_name(self) -> str:
@@ -466,15 +528,15 @@ class _Rendered:
         return f"{self.split}/{self.file_name}"
 
 
-def _render_all(scene: ProceduralScene) -> dict[str, list[_Rendered]]:
+def _render_all(scene: ProceduralScene, with_flow: bool = False) -> dict[str, list[_Rendered]]:
     out: dict[str, list[_Rendered]] = {}
     for split, items in scene.schedule().items():
         out[split] = []
         for number, t in items:
             c2w = scene.camera_to_world(split, t)
             camera = scene.camera(c2w)
-            rgba, mask = scene.render(t, camera)
-            out[split].append(_Rendered(split, number, t, c2w, camera, rgba, mask))
+            rgba, mask, flow = scene.render_frame(t, camera, with_flow)
+            out[split].append(_Rendered(split, number, t, c2w, camera, rgba, mask, flow))
     return out
 
 
@@ -527,7 +589,8 @@ def write_procedural_dataset(config: ProceduralSceneConfig | None, out_dir: Path
     root = Path(out_dir)
     (root / "mask").mkdir(parents=True, exist_ok=True)
     scene = ProceduralScene(config)
-    for split, items in _render_all(scene).items():
+    rendered = _render_all(scene, with_flow=True)
+    for split, items in rendered.items():
         (root / split).mkdir(exist_ok=True)
         frames = []
         for r in items:
@@ -540,7 +603,25 @@ def write_procedural_dataset(config: ProceduralSceneConfig | None, out_dir: Path
     assert points.rgb is not None
     write_ply_points(root / "points3d.ply", points.xyz, points.rgb)
     (root / "procedural.json").write_text(json.dumps(asdict(config), indent=2))
+    write_procedural_motion_gt(scene, rendered, root)
     return root
+
+
+def write_procedural_motion_gt(scene: ProceduralScene, rendered: dict[str, list[_Rendered]], root: Path) -> Path:
+    """The scene's ground-truth motion in ``root/motion_gt`` (:mod:`pidg.data.motion_gt`): the ring's Gaussian
+    centres as vertices, sampled at every frame's time, and one flow per image over one training-frame interval."""
+    frames = [r for items in rendered.values() for r in items]
+    for r in frames:
+        write_frame_flow(root, r.name, r.flow if r.flow is not None else scene.motion_flow(r.time, r.camera))
+    vertices = scene.vertex_motion([r.time for r in frames])
+    ring = MotionObject("ring", "analytic", 0, int(vertices.positions.shape[1]))
+    extra = {
+        "generator": "pidg.data.procedural",
+        "vertices": "centres of the ring's ground-truth Gaussians (no faces)",
+        "velocity_method": f"central differences of the analytic deformation, step {GT_VELOCITY_STEP:g} (dataset time)",
+        "frame_interval_is": "one training-frame interval = two steps of the common time grid",
+    }
+    return write_motion_gt(root, scene.frame_interval, [ring], vertices, extra=extra)
 
 
 def contact_sheet(frames: Sequence[Frame], columns: int = 5, show_masks: bool = True) -> Tensor:

@@ -1,0 +1,356 @@
+"""The learned motion scored against a dataset's ground-truth motion (:mod:`pidg.data.motion_gt`), not only pixels.
+
+**Flow (pixels).** For each frame of a split, with its camera held fixed, from its time t to t' = the ground-truth
+flow's ``next_time`` (t + the dataset's ``frame_interval``; one training-frame interval on the procedural scene):
+
+* *motion flow*: each Gaussian's projected centre displacement between the deformation at t and at t',
+  composited with the colour weights (:func:`pidg.data.motion_gt.composited_flow`, the definition the ground
+  truth is made with);
+* *velocity flow* (runs with a material field): each centre's projected displacement by v (converted from the
+  field's physics time to dataset time by the model's :class:`TimeAxis`) times (t' - t);
+* *Gaussian flow*: the affine flow LPFM trains (:mod:`pidg.flow.gaussian_flow`), in the JSON only.
+
+End-point error (EPE) = mean |flow - flow_gt| in pixels over the *scored pixels*: ground-truth dynamic, a surface in
+the ground truth (finite flow) and covered by the model (alpha > 0.5), pooled over the frames. The zero-motion EPE
+(= mean |flow_gt| there) gives it a scale. Ground-truth flows are resized to the run's images
+(:func:`pidg.data.motion_gt.resize_flow`). Frames whose t' lies after the recording (t' > 1) are skipped.
+
+**3D velocity.** At each frame time that has a ground-truth vertex sample: every vertex is matched to the nearest
+Gaussian deformed to t, if one lies within ``radius`` (world units; default 2 % of the diagonal of the box around
+all ground-truth vertex positions); coverage = matched / all vertex samples. Compared with the vertex's velocity
+(world units per unit of dataset time): the deformation's central difference (means at t +- h, h = half the
+ground-truth frame interval, one-sided at 0 and 1) and the material field's v converted to the same units
+(:func:`velocity_per_dataset_time`). Reported: mean |v - v_gt| (per unit of dataset time, and x frame_interval: per
+frame), the mean relative error |v - v_gt| / |v_gt| over matched vertices with |v_gt| > 0 and at least
+``speed_floor`` (default 10 % of the mean true speed), and the zero-velocity baseline (mean |v_gt|; relative error 1).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pidg.data.motion_gt import MotionGroundTruth, composited_flow, projected_displacement, resize_flow
+from pidg.data.scene import DatasetError, Frame
+from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
+from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.models.time_axis import TimeAxis
+from pidg.render import Camera
+
+RADIUS_FRACTION = 0.02
+"""Default matching radius: this fraction of the diagonal of the ground-truth vertices' bounding box."""
+SPEED_FLOOR_FRACTION = 0.1
+"""Default speed floor of the relative error: this fraction of the mean true speed."""
+MODEL_MIN_ALPHA = 0.5
+"""A pixel is covered by the model where its accumulated alpha exceeds this."""
+_TIME_TOL = 1e-6
+
+
+def velocity_per_dataset_time(v: Tensor, time_axis: TimeAxis) -> Tensor:
+    """A material field's velocity, world units per *physics* time unit, in world units per unit of *dataset*
+    time: tau = t * S, so dx/dt = dx/dtau * S with S = ``time_axis.physics_per_dataset``."""
+    return v * time_axis.physics_per_dataset
+
+
+# ---- results ------------------------------------------------------------------------------------------------------
+@dataclass
+class FlowScores:
+    """End-point errors in pixels, pooled over the scored pixels of every scored frame."""
+
+    frames: int
+    pixels: int
+    motion_flow_epe: float | None
+    velocity_flow_epe: float | None  # None without a material field
+    gaussian_flow_epe: float | None
+    zero_motion_epe: float | None  # mean |flow_gt| on the scored pixels
+    skipped: list[str] = field(default_factory=list)  # frames whose t + frame_interval lies after the recording
+
+
+@dataclass
+class VelocityScores:
+    """3D velocity of the Gaussians nearest to the ground-truth vertices (units: world units per unit of dataset
+    time; ``*_per_frame``: x frame_interval, world units per frame interval)."""
+
+    times: int
+    vertex_samples: int
+    matched: int
+    coverage: float | None
+    radius: float
+    fd_step: float
+    speed_floor: float | None
+    relative_samples: int  # matched samples with |v_gt| >= speed_floor
+    match_distance: float | None  # mean distance from a matched vertex to its Gaussian (world units)
+    deformation_mae: float | None
+    deformation_mae_per_frame: float | None
+    deformation_rel: float | None
+    field_mae: float | None  # None without a material field
+    field_mae_per_frame: float | None
+    field_rel: float | None
+    zero_mae: float | None  # the zero-velocity baseline: mean |v_gt| of the matched vertices
+    zero_mae_per_frame: float | None
+    zero_rel: float | None
+
+
+@dataclass
+class MotionEvaluation:
+    """Everything :func:`evaluate_motion` measured (``to_dict`` -> RUN/eval_SPLIT/motion_gt.json)."""
+
+    split: str
+    dataset: str
+    frame_interval: float
+    flow: FlowScores
+    velocity: VelocityScores
+    per_frame: list[dict[str, Any]]
+    units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def columns(self) -> dict[str, float | None]:
+        """The figures a benchmark table shows (keys prefixed ``gt_``)."""
+        return {
+            "gt_motion_flow_epe": self.flow.motion_flow_epe,
+            "gt_velocity_flow_epe": self.flow.velocity_flow_epe,
+            "gt_zero_motion_epe": self.flow.zero_motion_epe,
+            "gt_velocity_rel_deformation": self.velocity.deformation_rel,
+            "gt_velocity_rel_field": self.velocity.field_rel,
+            "gt_coverage": self.velocity.coverage,
+        }
+
+    def summary(self) -> str:
+        """One line: the flow EPEs against zero motion, and the 3D velocity errors against zero velocity."""
+        f, v = self.flow, self.velocity
+        return (
+            f"motion vs ground truth ({self.split}, {f.frames} frames, {f.pixels} px): motion-flow EPE {_px(f.motion_flow_epe)}, "
+            f"velocity-flow EPE {_px(f.velocity_flow_epe)}, zero motion {_px(f.zero_motion_epe)}; 3D velocity "
+            f"(coverage {_pct(v.coverage)} within {v.radius:.3g} world units): relative error deformation {_num(v.deformation_rel)}, "
+            f"field v {_num(v.field_rel)}, zero {_num(v.zero_rel)}"
+        )
+
+
+UNITS = {
+    "flow": "pixels of the run's images, from t to t + frame_interval, camera held fixed",
+    "velocity": "world units per unit of dataset time (x frame_interval: *_per_frame, world units per frame interval)",
+    "radius": "world units",
+}
+
+
+def _px(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f} px"
+
+
+def _num(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.1f}%"
+
+
+def _mean(x: Tensor) -> float | None:
+    return float(x.mean()) if x.numel() else None
+
+
+def _times(x: float | None, k: float) -> float | None:
+    return None if x is None else x * k
+
+
+# ---- flows --------------------------------------------------------------------------------------------------------
+@dataclass
+class ModelFlows:
+    """A model's flows [H, W, 2] in pixels in one camera from t to t' (NaN where alpha < 0.5), and its alpha."""
+
+    motion: Tensor
+    velocity: Tensor | None
+    gaussian: Tensor
+    alpha: Tensor
+
+
+@torch.no_grad()
+def model_flows(model: DynamicGaussians, camera: Camera, t: float, t1: float) -> ModelFlows:
+    """The model's motion, velocity and Gaussian flows from dataset time t to t1 in ``camera`` (held fixed), in
+    one rasterizer pass: [Gaussian-flow channels | centre displacement | velocity displacement] as features."""
+    state_t, state_t1 = model.at(t), model.at(t1)
+    means = state_t.means
+    channels = [
+        gaussian_flow_features(camera, means, state_t.quats, state_t.log_scales.exp(), model.gaussians.opacities,
+                               state_t1.means, state_t1.quats, state_t1.log_scales.exp()),
+        projected_displacement(camera, means, state_t1.means),
+    ]
+    if model.material_field is not None:
+        v = velocity_per_dataset_time(model.velocities(t, means), model.time_axis)
+        channels.append(projected_displacement(camera, means, means + v * (t1 - t)))
+    out = model.render_state(state_t, camera, torch.cat(channels, dim=-1))
+    assert out.features is not None
+    gaussian = decode_flows(out.features[..., :6], out.alpha)[0]
+    centre = composited_flow(out.features[..., 6:], out.alpha, MODEL_MIN_ALPHA)
+    gaussian = torch.where(torch.isfinite(centre[..., :1]), gaussian, torch.full_like(gaussian, float("nan")))
+    velocity = centre[..., 2:4] if model.material_field is not None else None
+    return ModelFlows(centre[..., :2], velocity, gaussian, out.alpha)
+
+
+def _epe_sum(flow: Tensor | None, gt: Tensor, mask: Tensor) -> float | None:
+    return None if flow is None else float((flow - gt).norm(dim=-1)[mask].double().sum())
+
+
+# ---- 3D velocity --------------------------------------------------------------------------------------------------
+def nearest_gaussians(points: Tensor, means: Tensor, max_elements: int = 1 << 24) -> tuple[Tensor, Tensor]:
+    """For points [V, 3]: the index [V] of the nearest of ``means`` [N, 3] and its distance [V], in chunks of at
+    most ``max_elements`` distances (memory stays bounded for any N)."""
+    chunk = max(1, max_elements // max(len(means), 1))
+    idx = torch.cat([torch.cdist(points[i : i + chunk], means).argmin(dim=1) for i in range(0, len(points), chunk)])
+    return idx, (points - means[idx]).norm(dim=-1)
+
+
+def default_radius(truth: MotionGroundTruth) -> float:
+    """:data:`RADIUS_FRACTION` of the diagonal of the box around every ground-truth vertex position."""
+    p = truth.vertices.positions.reshape(-1, 3)
+    return RADIUS_FRACTION * float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) if len(p) else 0.0
+
+
+@torch.no_grad()
+def _velocity_at(model: DynamicGaussians, t: float, points: Tensor, radius: float, h: float) -> dict[str, Tensor]:
+    """Matched-vertex mask, match distances and the two model velocities (dataset time) at the matched vertices."""
+    means = model.at(t).means
+    idx, dist = nearest_gaussians(points, means)
+    hit = dist <= radius
+    idx = idx[hit]
+    t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
+    out = {"hit": hit, "distance": dist[hit], "deformation": (model.at(t1).means[idx] - model.at(t0).means[idx]) / (t1 - t0)}
+    if model.material_field is not None:
+        out["field"] = velocity_per_dataset_time(model.velocities(t, means)[idx], model.time_axis)
+    return out
+
+
+# ---- the whole evaluation -----------------------------------------------------------------------------------------
+FLOW_KEYS = {"motion": "motion_flow_epe", "velocity": "velocity_flow_epe", "gaussian": "gaussian_flow_epe", "zero": "zero_motion_epe"}
+
+
+def _frame_flow_sums(model: DynamicGaussians, frame: Frame, flow: np.ndarray, dynamic: np.ndarray, t1: float) -> tuple[dict[str, float | None], int]:
+    """Sums of |flow - flow_gt| over one frame's scored pixels per flow (None: the model has no such flow), and
+    their number."""
+    flow_gt, dyn = resize_flow(torch.from_numpy(flow), torch.from_numpy(dynamic), (frame.width, frame.height))
+    flow_gt, dyn = flow_gt.to(model.device), dyn.to(model.device)
+    flows = model_flows(model, frame.camera, frame.time, t1)
+    mask = dyn & torch.isfinite(flow_gt).all(-1) & (flows.alpha > MODEL_MIN_ALPHA)
+    sums = {"motion": _epe_sum(flows.motion, flow_gt, mask), "velocity": _epe_sum(flows.velocity, flow_gt, mask),
+            "gaussian": _epe_sum(flows.gaussian, flow_gt, mask), "zero": float(flow_gt.norm(dim=-1)[mask].double().sum())}
+    return sums, int(mask.sum())
+
+
+@torch.no_grad()
+def evaluate_motion(
+    model: DynamicGaussians,
+    frames: Sequence[Frame],
+    truth: MotionGroundTruth,
+    split: str = "test",
+    radius: float | None = None,
+    fd_step: float | None = None,
+    speed_floor: float | None = None,
+) -> MotionEvaluation:
+    """Score the model's motion on ``frames`` against ``truth`` (see the module docstring for every definition).
+
+    ``radius``: vertex-to-Gaussian matching radius in world units (default :func:`default_radius`); ``fd_step``:
+    the deformation's central-difference step in dataset time (default half the ground-truth frame interval);
+    ``speed_floor``: smallest true speed counted in the relative error, world units per unit of dataset time
+    (default :data:`SPEED_FLOOR_FRACTION` of the mean true speed at the scored times)."""
+    if radius is not None and not radius > 0:
+        raise ValueError(f"motion evaluation: the matching radius must be > 0 world units, got {radius}")
+    radius = default_radius(truth) if radius is None else float(radius)
+    h = 0.5 * truth.frame_interval if fd_step is None else float(fd_step)
+    sums = dict.fromkeys(FLOW_KEYS, 0.0)
+    pixels, scored, skipped, per_frame = 0, 0, [], []
+    gathered: dict[str, list[Tensor]] = {"speed_all": [], "speed": [], "distance": [], "deformation": [], "field": []}
+    times_done: set[float] = set()
+    for frame in frames:
+        record: dict[str, Any] = {"view": frame.name, "time": frame.time}
+        gt = truth.frame_flow(frame.name)
+        if abs(gt.time - frame.time) > _TIME_TOL:
+            raise DatasetError(truth.flow_path(frame.name), f"flow is for t = {gt.time:.6f}, the frame is at t = {frame.time:.6f}")
+        if gt.next_time > 1.0 + _TIME_TOL:  # the model is not defined after its recording
+            skipped.append(frame.name)
+        else:
+            frame_sums, n = _frame_flow_sums(model, frame, gt.flow, gt.dynamic, gt.next_time)
+            for key, total in frame_sums.items():
+                sums[key] += total or 0.0
+                record[FLOW_KEYS[key]] = total / n if total is not None and n else None
+            record.update(next_time=gt.next_time, pixels=n)
+            pixels, scored = pixels + n, scored + 1
+        if frame.time not in times_done and _has_sample(truth, frame.time):
+            times_done.add(frame.time)
+            record.update(_score_vertices(model, truth, frame.time, radius, h, gathered))
+        per_frame.append(record)
+
+    def average(key: str) -> float | None:
+        return sums[key] / pixels if pixels and (key != "velocity" or model.material_field is not None) else None
+
+    flow_scores = FlowScores(scored, pixels, average("motion"), average("velocity"), average("gaussian"), average("zero"), skipped)
+    velocity = _velocity_scores(gathered, len(times_done), radius, h, speed_floor, truth.frame_interval)
+    return MotionEvaluation(split, str(truth.root.parent), truth.frame_interval, flow_scores, velocity, per_frame)
+
+
+def _has_sample(truth: MotionGroundTruth, t: float) -> bool:
+    try:
+        truth.vertices.index_of(t, _TIME_TOL)
+    except KeyError:
+        return False
+    return True
+
+
+def _score_vertices(
+    model: DynamicGaussians, truth: MotionGroundTruth, t: float, radius: float, h: float, gathered: dict[str, list[Tensor]]
+) -> dict[str, float | None]:
+    """Match the vertex sample at t to the model's Gaussians and add its speeds, distances and velocity errors to
+    ``gathered``; the frame's coverage, mean true speed and mean errors."""
+    k = truth.vertices.index_of(t, _TIME_TOL)
+    points = torch.from_numpy(truth.vertices.positions[k]).to(model.device)
+    v_gt = torch.from_numpy(truth.vertices.velocities[k]).to(model.device)
+    found = _velocity_at(model, t, points, radius, h)
+    speed = v_gt[found["hit"]].norm(dim=-1)
+    gathered["speed_all"].append(v_gt.norm(dim=-1))
+    gathered["speed"].append(speed)
+    gathered["distance"].append(found["distance"])
+    record = {"coverage": float(found["hit"].float().mean()), "gt_speed": _mean(speed)}
+    for key in ("deformation", "field"):
+        err = found[key] - v_gt[found["hit"]] if key in found else None
+        if err is not None:
+            gathered[key].append(err)
+        record[f"{key}_mae"] = None if err is None else _mean(err.norm(dim=-1))
+    return record
+
+
+def _velocity_scores(
+    gathered: dict[str, list[Tensor]], times: int, radius: float, h: float, speed_floor: float | None, frame_interval: float,
+) -> VelocityScores:
+    def cat(key: str) -> Tensor:
+        return torch.cat(gathered[key]) if gathered[key] else torch.zeros(0)
+
+    speed_all, speed = cat("speed_all"), cat("speed")
+    vertex_samples, matched = len(speed_all), len(speed)
+    floor = speed_floor if speed_floor is not None else (SPEED_FLOOR_FRACTION * float(speed_all.mean()) if len(speed_all) else None)
+    counted = (speed >= floor) & (speed > 0) if floor is not None else torch.zeros(0, dtype=torch.bool)
+
+    def errors(key: str) -> tuple[float | None, float | None, float | None]:
+        if not gathered[key]:
+            return None, None, None
+        err = cat(key).norm(dim=-1)
+        mae = _mean(err)
+        rel = _mean(err[counted] / speed[counted])
+        return mae, _times(mae, frame_interval), rel
+
+    d_mae, d_frame, d_rel = errors("deformation")
+    f_mae, f_frame, f_rel = errors("field")
+    zero = _mean(speed)
+    return VelocityScores(
+        times=times, vertex_samples=vertex_samples, matched=matched,
+        coverage=matched / vertex_samples if vertex_samples else None, radius=radius, fd_step=h, speed_floor=floor,
+        relative_samples=int(counted.sum()), match_distance=_mean(cat("distance")),
+        deformation_mae=d_mae, deformation_mae_per_frame=d_frame, deformation_rel=d_rel,
+        field_mae=f_mae, field_mae_per_frame=f_frame, field_rel=f_rel,
+        zero_mae=zero, zero_mae_per_frame=_times(zero, frame_interval), zero_rel=1.0 if int(counted.sum()) else None,
+    )
+

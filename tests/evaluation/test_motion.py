@@ -1,0 +1,253 @@
+"""Scoring the learned motion against ground-truth motion: known answers on a model whose deformation is a known
+translation, the unit conversion of the material field's v, coverage, and ``pidg eval --motion-gt`` end to end."""
+from __future__ import annotations
+
+import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor, nn
+
+from pidg.data.motion_gt import FrameFlow, MotionObject, VertexMotion, read_motion_gt, write_frame_flow, write_motion_gt
+from pidg.data.scene import DatasetError, Frame
+from pidg.evaluation.motion import RADIUS_FRACTION, default_radius, evaluate_motion, velocity_per_dataset_time
+from pidg.models.deformation.base import DeformationModel, DeformedGaussians
+from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.models.gaussians import GaussianModel
+from pidg.models.time_axis import TimeAxis
+from pidg.render import Camera
+
+W, H, Z = 40, 32, 2.0  # image size; the Gaussians lie on the plane z = 2 in front of the camera
+VELOCITY = torch.tensor([0.3, -0.2, 0.0])  # world units per unit of dataset time, parallel to the image plane
+S = 7.0  # physics time units per unit of dataset time
+DT = 0.125  # ground-truth frame interval (dataset time)
+
+
+def test_velocity_conversion_from_physics_to_dataset_time():
+    v = torch.tensor([[1.0, -2.0, 0.5]])
+    # default time axis: one physics unit per training-frame interval (here 0.25 of the recording) -> x4
+    axis = TimeAxis.from_times([0.0, 0.25, 0.5, 0.75, 1.0])
+    assert axis.physics_per_dataset == pytest.approx(4.0)
+    torch.testing.assert_close(velocity_per_dataset_time(v, axis), v * 4.0)
+    # an explicit scale: tau = 10 t, so dx/dt = 10 dx/dtau
+    torch.testing.assert_close(velocity_per_dataset_time(v, TimeAxis.from_times([0.0, 0.5, 1.0], 10.0)), v * 10.0)
+    # consistent with the axis: v (physics) x a span in physics units = v (dataset) x the span in dataset time
+    moved = v * axis.to_physics(0.1)
+    torch.testing.assert_close(velocity_per_dataset_time(v, axis) * 0.1, moved)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# a model with a known motion
+# ---------------------------------------------------------------------------------------------------------------
+class Translation(DeformationModel):
+    """Every Gaussian moves by ``velocity * t`` (world units per unit of dataset time)."""
+
+    def __init__(self, velocity: Tensor) -> None:
+        super().__init__()
+        self.register_buffer("velocity", velocity.clone())
+
+    def deform(self, means, quats, log_scales, times, regularize=False) -> DeformedGaussians:
+        return DeformedGaussians(means + times.unsqueeze(-1) * self.velocity, quats, log_scales)
+
+
+class ConstantField(nn.Module):
+    """A material field whose velocity is ``v`` everywhere (world units per physics time unit), stress 0."""
+
+    def __init__(self, v: Tensor) -> None:
+        super().__init__()
+        self.v = v
+
+    def forward(self, means: Tensor, t, index: Tensor) -> tuple[Tensor, Tensor]:
+        return self.v.to(means).expand(len(means), 3), means.new_zeros(len(means), 6)
+
+
+def plane_model(field_velocity: Tensor | None) -> DynamicGaussians:
+    """Opaque Gaussians on a grid in the plane z = Z covering the view (and beyond), translating with VELOCITY."""
+    xs = torch.linspace(-1.2, 1.2, 49)
+    gx, gy = torch.meshgrid(xs, xs, indexing="ij")
+    means = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.full((gx.numel(),), Z)], dim=-1)
+    n = len(means)
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1
+    gaussians = GaussianModel(means, quats, torch.full((n, 3), math.log(0.04)), torch.full((n,), 4.0),
+                              torch.rand(n, 1, 3, generator=torch.Generator().manual_seed(0)), torch.zeros(n, 0, 3), sh_degree=0)
+    field = None if field_velocity is None else ConstantField(field_velocity)
+    return DynamicGaussians(gaussians, Translation(VELOCITY), field, TimeAxis(S, 1.0 / S), torch.zeros(3), backend="cpu")
+
+
+CAMERA = Camera(torch.eye(4), 30.0, 30.0, W / 2, H / 2, W, H)
+EXPECTED_PX = (CAMERA.fx * VELOCITY[0] * DT / Z, CAMERA.fy * VELOCITY[1] * DT / Z)  # same for every Gaussian
+
+
+def write_truth(root, times=(0.25, 0.5), shift=(0.0, 0.0), scale=1, extra_vertex=False, v_gt=VELOCITY):
+    """Ground truth for the plane model: a constant flow (+ ``shift``) at ``scale`` x the image size, with a NaN
+    band (no surface) and a band that is not dynamic; vertices at the Gaussians' positions (+ one far away)."""
+    model = plane_model(None)
+    canonical = model.canonical().means.detach()[::5]
+    if extra_vertex:
+        canonical = torch.cat([canonical, torch.tensor([[0.0, 0.0, 50.0]])])
+    positions = np.stack([(canonical + t * VELOCITY).numpy() for t in times]).astype(np.float32)
+    velocities = np.broadcast_to(v_gt.numpy(), positions.shape).astype(np.float32)
+    motion = VertexMotion(np.asarray(times, np.float64), positions, velocities, np.zeros((0, 3), np.int64))
+    write_motion_gt(root, DT, [MotionObject("plane", "rigid", 0, len(canonical))], motion)
+    frames = []
+    for i, t in enumerate(times):
+        flow = np.empty((H * scale, W * scale, 2), np.float32)
+        flow[..., 0], flow[..., 1] = (EXPECTED_PX[0] + shift[0]) * scale, (EXPECTED_PX[1] + shift[1]) * scale
+        flow[: 4 * scale] = np.nan  # top rows: background in the truth
+        dynamic = np.ones(flow.shape[:2], bool)
+        dynamic[:, : 5 * scale] = False  # left columns: static in the truth
+        name = f"test/r_{i:04d}"
+        write_frame_flow(root, name, FrameFlow(flow, dynamic, t, t + DT))
+        frames.append(Frame(CAMERA, t, torch.zeros(H, W, 3, dtype=torch.uint8), name=name))
+    return read_motion_gt(root), frames
+
+
+SCORED_PIXELS = 2 * (H - 4) * (W - 5)  # two frames; every remaining pixel is covered by the model
+
+
+def test_matching_truth_gives_zero_error_and_zero_motion_gives_the_flow_size(tmp_path):
+    truth, frames = write_truth(tmp_path)
+    model = plane_model(VELOCITY / S)  # v in physics units that is exactly the deformation's motion
+    result = evaluate_motion(model, frames, truth)
+    size = math.hypot(*EXPECTED_PX)
+    assert size > 0.5
+    f = result.flow
+    assert (f.frames, f.pixels, f.skipped) == (2, SCORED_PIXELS, [])
+    assert f.motion_flow_epe == pytest.approx(0.0, abs=1e-4)
+    assert f.velocity_flow_epe == pytest.approx(0.0, abs=1e-4)
+    assert f.gaussian_flow_epe == pytest.approx(0.0, abs=1e-2)  # off-axis projection changes the 2D shapes a little
+    assert f.zero_motion_epe == pytest.approx(size, rel=1e-5)
+    v = result.velocity
+    assert v.coverage == 1.0 and v.matched == v.vertex_samples == 2 * len(truth.vertices.positions[0])
+    assert v.deformation_mae == pytest.approx(0.0, abs=1e-4) and v.field_mae == pytest.approx(0.0, abs=1e-5)
+    assert v.deformation_rel == pytest.approx(0.0, abs=1e-4) and v.field_rel == pytest.approx(0.0, abs=1e-5)
+    assert v.zero_mae == pytest.approx(float(VELOCITY.norm()), rel=1e-5) and v.zero_rel == 1.0
+    assert v.zero_mae_per_frame == pytest.approx(v.zero_mae * DT)
+    assert v.match_distance == pytest.approx(0.0, abs=1e-5) and v.fd_step == DT / 2
+    # typed results -> json, with the units
+    data = json.loads(json.dumps(result.to_dict()))
+    assert data["flow"]["pixels"] == SCORED_PIXELS and "world units per unit of dataset time" in data["units"]["velocity"]
+    assert [r["view"] for r in data["per_frame"]] == ["test/r_0000", "test/r_0001"]
+    assert set(result.columns()) == {"gt_motion_flow_epe", "gt_velocity_flow_epe", "gt_zero_motion_epe",
+                                     "gt_velocity_rel_deformation", "gt_velocity_rel_field", "gt_coverage"}
+    assert "motion-flow EPE 0.000 px" in result.summary()
+
+
+def test_shifted_truth_gives_the_shift_as_error(tmp_path):
+    truth, frames = write_truth(tmp_path, shift=(0.3, -0.4))
+    f = evaluate_motion(plane_model(VELOCITY / S), frames, truth).flow
+    assert f.motion_flow_epe == pytest.approx(0.5, rel=1e-4) and f.velocity_flow_epe == pytest.approx(0.5, rel=1e-4)
+    assert f.zero_motion_epe == pytest.approx(math.hypot(EXPECTED_PX[0] + 0.3, EXPECTED_PX[1] - 0.4), rel=1e-5)
+
+
+def test_a_wrong_field_velocity_shows_in_the_velocity_errors_only(tmp_path):
+    truth, frames = write_truth(tmp_path)
+    result = evaluate_motion(plane_model(2 * VELOCITY / S), frames, truth)  # twice the true speed
+    assert result.flow.motion_flow_epe == pytest.approx(0.0, abs=1e-4)
+    assert result.flow.velocity_flow_epe == pytest.approx(math.hypot(*EXPECTED_PX), rel=1e-4)
+    v = result.velocity
+    assert v.deformation_rel == pytest.approx(0.0, abs=1e-4)
+    assert v.field_rel == pytest.approx(1.0, rel=1e-5) and v.field_mae == pytest.approx(float(VELOCITY.norm()), rel=1e-5)
+    assert v.field_mae_per_frame == pytest.approx(v.field_mae * DT)
+    # without a material field there is no velocity flow and no field error
+    bare = evaluate_motion(plane_model(None), frames, truth)
+    assert bare.flow.velocity_flow_epe is None and bare.velocity.field_rel is None and bare.flow.motion_flow_epe is not None
+
+
+def test_truth_at_a_larger_resolution_is_resized_to_the_images(tmp_path):
+    truth, frames = write_truth(tmp_path, scale=2)
+    f = evaluate_motion(plane_model(None), frames, truth).flow
+    assert f.pixels == SCORED_PIXELS and f.motion_flow_epe == pytest.approx(0.0, abs=1e-4)
+
+
+def test_coverage_counts_vertices_without_a_gaussian_within_the_radius(tmp_path):
+    truth, frames = write_truth(tmp_path, extra_vertex=True)
+    v = evaluate_motion(plane_model(None), frames, truth).velocity
+    n = len(truth.vertices.positions[0])
+    assert v.coverage == pytest.approx((n - 1) / n) and v.matched == 2 * (n - 1)
+    p = truth.vertices.positions.reshape(-1, 3)
+    assert v.radius == pytest.approx(RADIUS_FRACTION * float(np.linalg.norm(p.max(0) - p.min(0)))) == pytest.approx(default_radius(truth))
+    # a radius smaller than the distance to any Gaussian: nothing is covered, the errors are unknown, not 0
+    shifted, _ = write_truth(tmp_path / "far", extra_vertex=False)
+    shifted.vertices.positions += np.float32(0.01)  # 1 cm off every Gaussian
+    none = evaluate_motion(plane_model(None), frames, shifted, radius=0.005).velocity
+    assert none.coverage == 0.0 and none.deformation_mae is None and none.deformation_rel is None
+    with pytest.raises(ValueError, match="radius must be > 0"):
+        evaluate_motion(plane_model(None), frames, truth, radius=0.0)
+
+
+def test_speed_floor_keeps_slow_vertices_out_of_the_relative_error(tmp_path):
+    truth, frames = write_truth(tmp_path, v_gt=torch.zeros(3))  # the truth stands still, the model moves
+    v = evaluate_motion(plane_model(None), frames, truth).velocity
+    assert v.deformation_mae == pytest.approx(float(VELOCITY.norm()), rel=1e-4)
+    assert v.relative_samples == 0 and v.deformation_rel is None and v.zero_rel is None
+
+
+def test_frames_past_the_recording_are_skipped_and_a_missing_flow_is_named(tmp_path):
+    truth, frames = write_truth(tmp_path, times=(0.5, 0.95))
+    result = evaluate_motion(plane_model(None), frames, truth)
+    assert result.flow.skipped == ["test/r_0001"] and result.flow.frames == 1
+    assert result.velocity.times == 2  # the 3D velocity needs no next frame
+    missing = dataclasses.replace(frames[0], name="test/r_0042")
+    with pytest.raises(DatasetError, match=r"flow/test/r_0042\.npz: ground-truth flow file not found"):
+        evaluate_motion(plane_model(None), [missing], truth)
+    moved = dataclasses.replace(frames[0], time=0.3)
+    with pytest.raises(DatasetError, match="flow is for t = 0.500000, the frame is at t = 0.300000"):
+        evaluate_motion(plane_model(None), [moved], truth)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# pidg eval --motion-gt on a tiny procedural run
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A procedural dataset (it carries its ground-truth motion) and a 6-step run with a material field, trained by
+    the command line."""
+    from pidg.cli import main
+    from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
+
+    root = tmp_path_factory.mktemp("motion_eval")
+    config = ProceduralSceneConfig(n_train=6, n_test=2, width=32, height=32, n_gaussians=800, n_init_points=300)
+    data_dir = write_procedural_dataset(config, root / "data")
+    assert main(["train", "--data.path", str(data_dir), "--output.dir", str(root / "run"), "--physics", "cmr",
+                 "--optim.iterations", "6", "--output.progress", "false", "--output.checkpoint_every", "0",
+                 "--output.preview_every", "0", "--densify.start", "1000", "--physics.samples", "64",
+                 "--material.width", "16"]) == 0
+    return root
+
+
+@pytest.mark.filterwarnings("ignore:ms_ssim reported as None")  # 32 px images are below MS-SSIM's minimum
+def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
+    from pidg.cli import main
+
+    run = tiny_run / "run"
+    assert main(["eval", str(run), "--motion-gt", "--lpips", "none"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("motion vs ground truth")]
+    assert len(lines) == 1 and str(run / "eval_test" / "motion_gt.json") in lines[0]
+    data = json.loads((run / "eval_test" / "motion_gt.json").read_text())
+    assert data["split"] == "test" and data["flow"]["frames"] == 2 and data["flow"]["pixels"] > 0
+    assert data["frame_interval"] == pytest.approx(0.2)
+    for key in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe"):
+        assert data["flow"][key] >= 0
+    assert 0 <= data["velocity"]["coverage"] <= 1 and data["velocity"]["times"] == 2
+    assert (run / "eval_test" / "metrics.json").is_file()
+
+
+@pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
+def test_cli_eval_motion_gt_without_truth_is_one_line_naming_the_file(tiny_run, capsys):
+    from pidg.cli import main
+
+    truth, hidden = tiny_run / "data" / "motion_gt", tiny_run / "data" / "motion_gt_hidden"
+    truth.rename(hidden)
+    try:
+        assert main(["eval", str(tiny_run / "run"), "--split", "test", "--motion-gt", "--lpips", "none"]) == 2
+    finally:
+        hidden.rename(truth)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "motion_gt/meta.json" in err[0] and "no ground-truth motion" in err[0]
