@@ -115,11 +115,22 @@ class DynamicGaussians:
         """[N] bool, True for Gaussians the deformation moves; None before decoupling (all of them move)."""
         return self.gaussians.buffers.get(DYNAMIC_MASK)
 
-    def set_dynamic_mask(self, dynamic: Tensor) -> None:
-        """Install the static/dynamic split (a per-Gaussian row: densification and checkpoints carry it)."""
+    def set_dynamic_mask(self, dynamic: Tensor, static_state: DeformedGaussians | None = None) -> None:
+        """Install the static/dynamic split (a per-Gaussian row: densification and checkpoints carry it).
+
+        ``static_state`` (all Gaussians; e.g. their time-averaged deformed state) becomes the canonical position,
+        orientation and scale of the static ones, which the deformation no longer moves: without it they would fall
+        back to canonical values no training view saw them at."""
+        dynamic = dynamic.to(device=self.device, dtype=torch.bool)
+        if static_state is not None:
+            static = ~dynamic
+            p = self.gaussians.params
+            with torch.no_grad():
+                for name, value in (("means", static_state.means), ("quats", static_state.quats), ("log_scales", static_state.log_scales)):
+                    p[name][static] = value[static].to(p[name].dtype)
         if DYNAMIC_MASK in self.gaussians.buffers:
             del self.gaussians.buffers[DYNAMIC_MASK]
-        self.gaussians.add_buffer(DYNAMIC_MASK, dynamic.to(device=self.device, dtype=torch.bool))
+        self.gaussians.add_buffer(DYNAMIC_MASK, dynamic)
 
     # ---- Gaussians at a time -------------------------------------------------------------------------------------
     def canonical(self) -> DeformedGaussians:

@@ -82,6 +82,10 @@ class OptimConfig:
     dynamic_vote: Annotated[float, UNIT] = 0.4
     """Static/dynamic decoupling: a Gaussian is dynamic if inside the motion mask in more than this share of the
     training views that see it."""
+    motion_split_px: Annotated[float, NON_NEGATIVE] = 2.0
+    """Static/dynamic decoupling of data without motion masks (D-NeRF, HyperNeRF): a Gaussian counts as moving in a
+    training view when the deformation puts its centre at least this many pixels from where its time-averaged
+    position projects (dynamic: moving in more than dynamic_vote of the views that see it); 0: no split without masks."""
     max_rollbacks: Annotated[int, NON_NEGATIVE] = 3
     """A step with a non-finite loss, gradient or parameter rolls the run back to its last good checkpoint, at most
     this many times; then training stops with a clear message (0: stop at the first)."""
