@@ -17,6 +17,7 @@ from pidg.bench.quality import run_quality_bench
 from pidg.bench.suite import SUITES, discover_scenes, run_suite, suite_config
 from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_bench
 from pidg.bench.step import run_step_bench
+from pidg.bench.views import run_views_bench
 from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE
 from pidg.config_tools import MISSING_OPTION, add_config_arguments, apply_overrides, load_config, overrides_from_args
 from pidg.data import dataset_layout, detect_format, load_scene, parse_downscale
@@ -29,6 +30,8 @@ from pidg.models.material_field import Activation, MaterialFieldConfig
 from pidg.physics import PhysicsConfig, PhysicsKind
 from pidg.pipeline import evaluate_run, render_run, run_demo
 from pidg.report import build_report
+from pidg.scenes import KINDS as SCENE_KINDS
+from pidg.scenes import SceneOptions, make_scene, parse_resolution, summary_lines
 from pidg.viewer import Quality, ViewerOptions, serve_run
 from pidg.viewer.server import measure_run
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig, apply_preset
@@ -145,6 +148,21 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_make_scene(args: argparse.Namespace) -> int:
+    width, height = parse_resolution(args.resolution)
+    options = SceneOptions(args.kind, frames=args.frames, width=width, height=height, samples=args.samples,
+                           static_camera=args.static_camera, seed=args.seed, denoise=not args.no_denoise,
+                           points=args.points, verify=args.verify)
+    summary = make_scene(options, Path(args.out), overwrite=args.overwrite)
+    t, images = summary["timings"], summary["images"]
+    print(f"{args.kind} scene -> {args.out}: {images['train']} train / {images['val']} val / {images['test']} test images of "
+          f"{width}x{height} ({summary['render']['engine']}, {args.samples} samples); {t['total_s']:.1f} s in all, "
+          f"{t['render_s_per_image']:.2f} s a render")
+    for line in summary_lines(summary["verify"]) if args.verify else []:
+        print(f"  verify: {line}")
+    return 0
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     out = build_report([Path(p) for p in args.paths], Path(args.out), str(resolve_device(args.device)), not args.no_pictures)
     print(f"report -> {out}")
@@ -186,6 +204,11 @@ def _cmd_bench_step(args: argparse.Namespace) -> int:
         Path(args.scene), _train_config(args, data_path=args.scene), args.variants, args.downscale, args.gaussians, args.iterations,
         out=Path(args.out) if args.out else None, from_run=Path(args.from_run) if args.from_run else None,
     )
+    return 0
+
+
+def _cmd_bench_views(args: argparse.Namespace) -> int:
+    run_views_bench(Path(args.run), every=args.every, device=args.device)
     return 0
 
 
@@ -275,6 +298,26 @@ def build_parser() -> argparse.ArgumentParser:
     _add_device_option(demo)
     demo.set_defaults(func=_cmd_demo)
 
+    scene = sub.add_parser("make-scene", help="a dynamic dataset from Blender's solvers with ground-truth motion (needs bpy)",
+                           description="Build, simulate and render a PIDG-style scene with Blender (bpy: pip install -e "
+                           "\".[scenes]\"): one monocular camera orbiting it, train/val/test interleaved in time, motion "
+                           "masks, depth, points3d.ply and the ground truth in DIR/motion_gt (vertex positions and velocities, "
+                           "object-motion flow per image).")
+    scene.add_argument("kind", choices=SCENE_KINDS, help="rigid: objects falling and colliding; cloth: a cloth draping over a "
+                       "sphere; soft: a soft ball bouncing; kinematic: a keyframed object on a smooth path")
+    scene.add_argument("--out", required=True, help="the dataset folder to write (must not exist unless --overwrite)")
+    scene.add_argument("--frames", type=int, default=60, help="images, one per simulation frame at 24 fps (4-2000)")
+    scene.add_argument("--resolution", default="200x200", metavar="WxH", help="image size in pixels")
+    scene.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (denoised)")
+    scene.add_argument("--no-denoise", action="store_true", help="no OpenImageDenoise pass")
+    scene.add_argument("--static-camera", action="store_true", help="a fixed camera instead of one orbiting the scene")
+    scene.add_argument("--seed", type=int, default=0, help="placement, colours and camera start")
+    scene.add_argument("--points", type=int, default=10_000, help="points sampled for points3d.ply")
+    scene.add_argument("--verify", action="store_true", help="check the ground truth independently; residuals -> "
+                       "DIR/motion_gt/verify.json")
+    scene.add_argument("--overwrite", action="store_true", help="replace DIR when it holds an earlier make-scene output")
+    scene.set_defaults(func=_cmd_make_scene)
+
     report = sub.add_parser("report", help="one HTML page: suite tables, runs' metrics, PSNR curves, velocity/stress/flow pictures")
     report.add_argument("paths", nargs="+", metavar="RUN_OR_SUITE", help="run folders, suite folders (suite.json) or "
                         "bench quality folders (quality.json)")
@@ -355,6 +398,12 @@ def build_parser() -> argparse.ArgumentParser:
     suite.add_argument("--cpus-per-job", type=float, default=1.0, help="ray executor: CPUs per task")
     _add_run_options(suite, "NAME --data DIR ")
     suite.set_defaults(func=_cmd_bench_suite)
+
+    views = bench_sub.add_parser("views", help="a procedural-scene run's error split into novel time and novel viewpoint")
+    views.add_argument("run", help="a run trained on the embedded procedural scene (e.g. outputs/demo/run)")
+    views.add_argument("--every", type=int, default=1, help="score every k-th time of each probe set")
+    _add_device_option(views)
+    views.set_defaults(func=_cmd_bench_views)
 
     step = bench_sub.add_parser("step", help="training-step rate and its breakdown per variant, interleaved, fixed Gaussian count")
     step.add_argument("scene", help="dataset folder")

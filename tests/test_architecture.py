@@ -20,7 +20,7 @@ FLOORS: list[set[str]] = [
     {"pidg.data"},
     {"pidg.models"},
     {"pidg.physics", "pidg.flow"},
-    {"pidg.training", "pidg.evaluation", "pidg.export"},
+    {"pidg.training", "pidg.evaluation", "pidg.export", "pidg.scenes"},
     {"pidg.pipeline"},
     {"pidg.bench"},
     {"pidg.report"},
