@@ -56,7 +56,7 @@ from pidg.data.motion_gt import (
 from pidg.data.ply import write_ply_points
 from pidg.data.scene import Background, Frame, PointCloud, SceneData, compute_bounds
 from pidg.render.api import rasterize
-from pidg.render.camera import Camera
+from pidg.render.camera import Camera, orbit_camera_to_world
 from pidg.render.projection import rotmat_to_quat
 from pidg.render.scenes import GaussianScene
 
@@ -420,18 +420,7 @@ class ProceduralScene:
         else:
             az += math.radians(35.0 if split == "test" else -35.0)
             el = 28.0 - 12.0 * wave
-        el = math.radians(el)
-        target = torch.tensor(CAMERA_TARGET, dtype=torch.float64)
-        eye = target + cfg.camera_distance * torch.tensor(
-            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64
-        )
-        forward = (target - eye) / (target - eye).norm()
-        right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-        right = right / right.norm()
-        up = torch.linalg.cross(right, forward)
-        c2w = torch.eye(4, dtype=torch.float64)
-        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, eye
-        return c2w
+        return orbit_camera_to_world(CAMERA_TARGET, cfg.camera_distance, az, math.radians(el))
 
     def camera(self, c2w: Tensor) -> Camera:
         """The camera exactly as the D-NeRF reader builds it from ``transform_matrix`` and ``camera_angle_x``."""
@@ -612,7 +601,8 @@ def write_procedural_motion_gt(scene: ProceduralScene, rendered: dict[str, list[
     centres as vertices, sampled at every frame's time, and one flow per image over one training-frame interval."""
     frames = [r for items in rendered.values() for r in items]
     for r in frames:
-        write_frame_flow(root, r.name, r.flow if r.flow is not None else scene.motion_flow(r.time, r.camera))
+        assert r.flow is not None  # rendered with_flow
+        write_frame_flow(root, r.name, r.flow)
     vertices = scene.vertex_motion([r.time for r in frames])
     ring = MotionObject("ring", "analytic", 0, int(vertices.positions.shape[1]))
     extra = {

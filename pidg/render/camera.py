@@ -154,3 +154,20 @@ class Camera:
         if self.world_to_camera.device == torch.device(device):
             return self
         return replace(self, world_to_camera=self.world_to_camera.to(device))
+
+
+def orbit_camera_to_world(target: Tensor | tuple[float, float, float], radius: float, azimuth: float, elevation: float) -> Tensor:
+    """OpenGL camera-to-world [4, 4] float64 (columns right, up, backward, eye) of a camera on the sphere of
+    ``radius`` (world units) around ``target``, upright (world z up) and looking at ``target``; angles in radians.
+    The camera rigs of the generated scenes (procedural demo, ``pidg make-scene``) all come from here."""
+    t = torch.as_tensor(target, dtype=torch.float64)
+    eye = t + radius * torch.tensor(
+        [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)], dtype=torch.float64
+    )
+    forward = (t - eye) / (t - eye).norm()
+    right = torch.linalg.cross(forward, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    right = right / right.norm()
+    up = torch.linalg.cross(right, forward)
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, eye
+    return c2w

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pidg.render.camera import Camera
+from pidg.render.camera import Camera, orbit_camera_to_world
 
 HOLDOUT_EVERY = 4
 """Image i is held out when i % HOLDOUT_EVERY == HOLDOUT_EVERY // 2 (alternately test and val)."""
@@ -78,17 +78,8 @@ class Orbit:
 
 def look_at_gl(target: tuple[float, float, float], radius: float, azimuth: float, elevation: float) -> np.ndarray:
     """Camera-to-world [4, 4] (OpenGL: columns right, up, backward, eye) on a sphere around ``target``, upright
-    (world z up), looking at ``target``; angles in radians."""
-    t = np.asarray(target, dtype=np.float64)
-    eye = t + radius * np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
-                                 math.sin(elevation)])
-    forward = (t - eye) / np.linalg.norm(t - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, -forward, eye
-    return c2w
+    (world z up), looking at ``target``; angles in radians (``pidg.render.camera.orbit_camera_to_world``)."""
+    return orbit_camera_to_world(target, radius, azimuth, elevation).numpy()
 
 
 def pidg_camera(c2w: np.ndarray, width: int, height: int, fov_x: float) -> Camera:

@@ -37,6 +37,7 @@ import torch
 from PIL import Image
 
 from pidg.data.motion_gt import FrameFlow, MotionObject, VertexMotion, write_frame_flow, write_motion_gt
+from pidg.data.scene import parse_downscale
 from pidg.data.ply import write_ply_points
 from pidg.render.camera import Camera
 from pidg.scenes import blender_build as bb
@@ -83,10 +84,13 @@ class SceneOptions:
 
 def parse_resolution(text: str) -> tuple[int, int]:
     """'200x200' -> (200, 200); ValueError naming the option otherwise."""
-    parts = text.lower().split("x")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+    try:
+        size = parse_downscale(text)  # the parser of --data.downscale's WIDTHxHEIGHT form
+    except ValueError:
+        size = None
+    if not isinstance(size, tuple):
         raise ValueError(f"--resolution {text!r}: give WIDTHxHEIGHT in pixels, e.g. 200x200")
-    return int(parts[0]), int(parts[1])
+    return size
 
 
 def check_output(out: Path, overwrite: bool) -> None:
