@@ -101,7 +101,7 @@ def run_views_bench(run_dir: Path, every: int = 1, device: Device = "auto", out:
     scene = ProceduralScene(procedural_config_of(run_dir))
     model = DynamicGaussians.from_run(run_dir, device=resolve_device(device))
     results = score_probes(model, scene, every)
-    print(f"{'probe set':<36}{'views':>6}{'PSNR':>8}{'ring':>8}{'static':>8}")
+    print(f"{'probe set (PSNR in dB)':<36}{'views':>6}{'PSNR':>8}{'ring':>8}{'static':>8}")
     for r in results:
         print(f"{r.name:<36}{r.views:>6}{r.psnr:>8.2f}{r.psnr_dynamic:>8.2f}{r.psnr_static:>8.2f}")
     path = out or run_dir / "bench_views.json"
