@@ -9,10 +9,13 @@ gradient w.r.t. the prediction is three more blurs of closed-form maps:
   dS/dp = blur(dS/dmu_p) + 2 p blur(dS/dE_pp) + g blur(dS/dE_pg)      (the zero-padded blur is self-adjoint)
   dS/dmu_p = 2 mu_g (A2 - A1) / (B1 B2) - 2 mu_p s (1/B1 - 1/B2),  dS/dE_pp = -s / B2,  dS/dE_pg = 2 A1 / (B1 B2).
 
-Each pass is one kernel that forms its maps on the fly: the forward blurs p, g, p^2, g^2, p g and evaluates s and
-the three derivative maps row by row; the backward blurs those and combines them with p and g. (Building the maps
-with torch ops around a blur kernel cost as much again as the blurs: ~25 full-image temporaries per step.)
-Work is split into bands of rows per channel, so both threads stay busy on 3-channel images.
+Each pass is one kernel that forms its maps on the fly, one band of 16 output rows of one channel per task: the
+forward builds p, g, p^2, g^2, p g on the band's rows plus the window's margin, blurs them vertically then
+horizontally a row at a time and evaluates s and the three derivative maps there; the backward does the same
+with the derivative maps and combines them with p and g. No full-image temporary is made (building the maps
+with torch ops around a blur kernel cost as much again as the blurs). The horizontal pass reads rows padded with
+zeros, so its loops have fixed bounds and vectorise: with bounds clipped at the image edge they ran 8x slower,
+which made the previous version of this module scalar (3.8x slower at 400x400, measured).
 
 ``pidg.metrics.ssim(..., padding="zeros")`` is the readable autograd reference the tests compare with.
 """
@@ -25,7 +28,10 @@ from torch import Tensor
 
 from pidg.metrics import SSIM_K, SSIM_WIN_SIGMA, SSIM_WIN_SIZE
 
-_BAND = 16  # rows per parallel task
+_BAND = 16  # output rows per parallel task
+# Blur loops may contract multiply-adds into FMAs and reassociate nothing else: the result is the same on every run
+# of a build (no reduction depends on the thread schedule), and the lane loops vectorise.
+_BLUR_FASTMATH = {"contract", "nsz", "arcp"}
 
 
 def gaussian_window_1d(size: int = SSIM_WIN_SIZE, sigma: float = SSIM_WIN_SIGMA) -> np.ndarray:
@@ -34,80 +40,87 @@ def gaussian_window_1d(size: int = SSIM_WIN_SIZE, sigma: float = SSIM_WIN_SIGMA)
     return (k / k.sum()).astype(np.float32)
 
 
-@njit(cache=True, inline="always")
-def _blur_row_x(src, kernel, acc):  # pragma: no cover - compiled
-    """acc[x] = sum_k kernel[k] src[x + k - radius], zero outside the row."""
-    width = src.shape[0]
+@njit(cache=True, inline="always", fastmath=_BLUR_FASTMATH)
+def _blur_band_y(band, n_maps, row, kernel, out):  # pragma: no cover - compiled
+    """out[j, radius + x] = sum_k kernel[k] band[j, row + k, x]: the vertical pass of one output row from a band
+    whose rows are already zero-padded, written into a row with ``radius`` zeros on both sides (the horizontal pass
+    then needs no bounds: loops with fixed bounds vectorise, clipped ones ran 8x slower, measured)."""
+    width = band.shape[2]
     radius = kernel.shape[0] // 2
-    for x in range(width):
-        acc[x] = 0.0
-    for k in range(kernel.shape[0]):
-        shift = k - radius
-        w = kernel[k]
-        for x in range(max(0, -shift), min(width, width - shift)):
-            acc[x] += w * src[x + shift]
+    for j in range(n_maps):
+        for x in range(width + 2 * radius):
+            out[j, x] = np.float32(0.0)
+        for k in range(kernel.shape[0]):
+            w = kernel[k]
+            for x in range(width):
+                out[j, radius + x] += w * band[j, row + k, x]
 
 
-@njit(cache=True, inline="always")
-def _blur_row_y(rows, j, c, y, kernel, acc):  # pragma: no cover - compiled
-    """acc[x] = sum_k kernel[k] rows[j, c, y + k - radius, x], zero outside the image."""
-    height, width = rows.shape[2], rows.shape[3]
-    radius = kernel.shape[0] // 2
-    for x in range(width):
-        acc[x] = 0.0
-    for k in range(max(0, radius - y), min(kernel.shape[0], height + radius - y)):
-        w = kernel[k]
-        yy = y + k - radius
+@njit(cache=True, inline="always", fastmath=_BLUR_FASTMATH)
+def _blur_rows_x(padded, n_maps, kernel, out):  # pragma: no cover - compiled
+    """out[j, x] = sum_k kernel[k] padded[j, x + k]: the horizontal pass over rows padded by ``radius`` zeros."""
+    width = out.shape[1]
+    for j in range(n_maps):
         for x in range(width):
-            acc[x] += w * rows[j, c, yy, x]
-
-
-@njit(cache=True, inline="always")
-def _store(acc, out, j, c, y):  # pragma: no cover - compiled
-    for x in range(acc.shape[0]):
-        out[j, c, y, x] = acc[x]
+            out[j, x] = np.float32(0.0)
+        for k in range(kernel.shape[0]):
+            w = kernel[k]
+            for x in range(width):
+                out[j, x] += w * padded[j, x + k]
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _blur_pass(src, kernel, dst, along_y):  # pragma: no cover - compiled
-    """dst = one pass of the separable blur of [J, C, H, W] maps, along x or (``along_y``) along y."""
-    n_maps, n_ch, height, width = src.shape
+def _blur_maps(maps, kernel, out):  # pragma: no cover - compiled
+    """out = the zero-padded separable blur of maps [M, H, W], one band of rows per task."""
+    n_maps, height, width = maps.shape
+    radius = kernel.shape[0] // 2
     n_bands = (height + _BAND - 1) // _BAND
-    for job in prange(n_maps * n_ch * n_bands):
-        j, c, y0 = job // (n_ch * n_bands), (job // n_bands) % n_ch, (job % n_bands) * _BAND
-        acc = np.empty(width, dtype=np.float32)
-        for y in range(y0, min(height, y0 + _BAND)):
-            if along_y:
-                _blur_row_y(src, j, c, y, kernel, acc)
-            else:
-                _blur_row_x(src[j, c, y], kernel, acc)
-            _store(acc, dst, j, c, y)
+    for job in prange(n_maps * n_bands):
+        m, y0 = job // n_bands, (job % n_bands) * _BAND
+        y1 = min(height, y0 + _BAND)
+        band = np.zeros((1, y1 - y0 + 2 * radius, width), dtype=np.float32)
+        for r in range(y1 - y0 + 2 * radius):
+            yy = y0 + r - radius
+            if 0 <= yy < height:
+                for x in range(width):
+                    band[0, r, x] = maps[m, yy, x]
+        vert = np.empty((1, width + 2 * radius), dtype=np.float32)
+        horiz = np.empty((1, width), dtype=np.float32)
+        for y in range(y0, y1):
+            _blur_band_y(band, 1, y - y0, kernel, vert)
+            _blur_rows_x(vert, 1, kernel, horiz)
+            for x in range(width):
+                out[m, y, x] = horiz[0, x]
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(parallel=True, cache=True, nogil=True, fastmath=_BLUR_FASTMATH)
 def _ssim_forward(p, g, kernel, c1, c2, row_sums, derivs):  # pragma: no cover - compiled
     """p, g [C, H, W] -> row_sums [C, H] of the SSIM map, and derivs [3, C, H, W]: its derivative maps w.r.t.
-    mu_p, E[p^2] and E[p g]."""
+    mu_p, E[p^2] and E[p g]. Each task takes one channel's band of output rows: it forms the five maps (p, g, p^2,
+    g^2, p g) on the band's rows plus the window's margin (zero outside the image), blurs them vertically then
+    horizontally one output row at a time, and evaluates SSIM there: no full-image temporary."""
     n_ch, height, width = p.shape
-    rows = np.empty((5, n_ch, height, width), dtype=np.float32)  # x-blurred p, g, p^2, g^2, p g
+    radius = kernel.shape[0] // 2
     n_bands = (height + _BAND - 1) // _BAND
     for job in prange(n_ch * n_bands):
         c, y0 = job // n_bands, (job % n_bands) * _BAND
-        src = np.empty((5, width), dtype=np.float32)
-        acc = np.empty(width, dtype=np.float32)
-        for y in range(y0, min(height, y0 + _BAND)):
-            for x in range(width):
-                a, b = p[c, y, x], g[c, y, x]
-                src[0, x], src[1, x], src[2, x], src[3, x], src[4, x] = a, b, a * a, b * b, a * b
-            for j in range(5):
-                _blur_row_x(src[j], kernel, acc)
-                _store(acc, rows, j, c, y)
-    for job in prange(n_ch * n_bands):
-        c, y0 = job // n_bands, (job % n_bands) * _BAND
+        y1 = min(height, y0 + _BAND)
+        band = np.zeros((5, y1 - y0 + 2 * radius, width), dtype=np.float32)
+        for r in range(y1 - y0 + 2 * radius):
+            yy = y0 + r - radius
+            if 0 <= yy < height:
+                for x in range(width):
+                    a, b = p[c, yy, x], g[c, yy, x]
+                    band[0, r, x] = a
+                    band[1, r, x] = b
+                    band[2, r, x] = a * a
+                    band[3, r, x] = b * b
+                    band[4, r, x] = a * b
+        vert = np.empty((5, width + 2 * radius), dtype=np.float32)
         mu = np.empty((5, width), dtype=np.float32)
-        for y in range(y0, min(height, y0 + _BAND)):
-            for j in range(5):
-                _blur_row_y(rows, j, c, y, kernel, mu[j])
+        for y in range(y0, y1):
+            _blur_band_y(band, 5, y - y0, kernel, vert)
+            _blur_rows_x(vert, 5, kernel, mu)
             total = 0.0
             for x in range(width):
                 mp, mg = mu[0, x], mu[1, x]
@@ -115,26 +128,39 @@ def _ssim_forward(p, g, kernel, c1, c2, row_sums, derivs):  # pragma: no cover -
                 a2 = np.float32(2.0) * (mu[4, x] - mp * mg) + c2
                 b1 = mp * mp + mg * mg + c1
                 b2 = (mu[2, x] - mp * mp) + (mu[3, x] - mg * mg) + c2
-                inv_b1b2 = np.float32(1.0) / (b1 * b2)
+                inv_b1 = np.float32(1.0) / b1
+                inv_b2 = np.float32(1.0) / b2
+                inv_b1b2 = inv_b1 * inv_b2
                 s = a1 * a2 * inv_b1b2
                 total += s
-                derivs[0, c, y, x] = np.float32(2.0) * mg * (a2 - a1) * inv_b1b2 - np.float32(2.0) * mp * s * (np.float32(1.0) / b1 - np.float32(1.0) / b2)
-                derivs[1, c, y, x] = -s / b2
+                derivs[0, c, y, x] = np.float32(2.0) * mg * (a2 - a1) * inv_b1b2 - np.float32(2.0) * mp * s * (inv_b1 - inv_b2)
+                derivs[1, c, y, x] = -s * inv_b2
                 derivs[2, c, y, x] = np.float32(2.0) * a1 * inv_b1b2
             row_sums[c, y] = total
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _ssim_gradient(p, g, blurred_x, kernel, scale, grad):  # pragma: no cover - compiled
-    """grad [C, H, W] = scale * (blur(d_mu) + 2 p blur(d_pp) + g blur(d_pg)), from the x-blurred derivative maps."""
+@njit(parallel=True, cache=True, nogil=True, fastmath=_BLUR_FASTMATH)
+def _ssim_gradient(p, g, derivs, kernel, scale, grad):  # pragma: no cover - compiled
+    """grad [C, H, W] = scale * (blur(d_mu) + 2 p blur(d_pp) + g blur(d_pg)) from the derivative maps, band by band
+    like the forward (the zero-padded blur with a symmetric window is self-adjoint)."""
     n_ch, height, width = p.shape
+    radius = kernel.shape[0] // 2
     n_bands = (height + _BAND - 1) // _BAND
     for job in prange(n_ch * n_bands):
         c, y0 = job // n_bands, (job % n_bands) * _BAND
+        y1 = min(height, y0 + _BAND)
+        band = np.zeros((3, y1 - y0 + 2 * radius, width), dtype=np.float32)
+        for r in range(y1 - y0 + 2 * radius):
+            yy = y0 + r - radius
+            if 0 <= yy < height:
+                for j in range(3):
+                    for x in range(width):
+                        band[j, r, x] = derivs[j, c, yy, x]
+        vert = np.empty((3, width + 2 * radius), dtype=np.float32)
         blurred = np.empty((3, width), dtype=np.float32)
-        for y in range(y0, min(height, y0 + _BAND)):
-            for j in range(3):
-                _blur_row_y(blurred_x, j, c, y, kernel, blurred[j])
+        for y in range(y0, y1):
+            _blur_band_y(band, 3, y - y0, kernel, vert)
+            _blur_rows_x(vert, 3, kernel, blurred)
             for x in range(width):
                 grad[c, y, x] = scale * (blurred[0, x] + np.float32(2.0) * p[c, y, x] * blurred[1, x] + g[c, y, x] * blurred[2, x])
 
@@ -148,11 +174,10 @@ def _chw(t: Tensor) -> np.ndarray:
 
 def blur(maps: Tensor) -> Tensor:
     """[M, H, W] float32 -> same shape, blurred by the 11-tap sigma-1.5 Gaussian with zero padding."""
-    src = _chw(maps)[None]
-    rows, out = np.empty_like(src), np.empty_like(src)
-    _blur_pass(src, _WINDOW, rows, False)
-    _blur_pass(rows, _WINDOW, out, True)
-    return torch.from_numpy(out[0])
+    src = _chw(maps)
+    out = np.empty_like(src)
+    _blur_maps(src, _WINDOW, out)
+    return torch.from_numpy(out)
 
 
 class _FusedSSIM(torch.autograd.Function):
@@ -170,9 +195,8 @@ class _FusedSSIM(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
         p, g, derivs = ctx.maps
-        blurred_x, out = np.empty_like(derivs), np.empty_like(p)
-        _blur_pass(derivs, _WINDOW, blurred_x, False)
-        _ssim_gradient(p, g, blurred_x, _WINDOW, np.float32(float(grad) / p.size), out)
+        out = np.empty_like(p)
+        _ssim_gradient(p, g, derivs, _WINDOW, np.float32(float(grad) / p.size), out)
         return torch.from_numpy(out).to(ctx.dtype), None
 
 
