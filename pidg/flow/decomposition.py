@@ -10,7 +10,9 @@ Hence
 
 The motion flow lives on I_{t+1}'s pixel grid; it is carried onto I_t's grid with the forward flow (value at
 p + f(p) for each pixel p of I_t), so that it can be compared with the Gaussian flow rendered in camera t without
-warping the rendered flow. All functions are plain torch on [H, W, ...] tensors (any float dtype), no model.
+warping the rendered flow. The functions here are plain torch on [H, W, ...] tensors (any float dtype), no model;
+``motion_flow_target`` runs the numba kernels of :mod:`pidg.flow.decomposition_cpu` on float32 CPU tensors, with
+these functions as their reference.
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from pidg.flow.decomposition_cpu import motion_flow_target_cpu
 from pidg.flow.optical_flow import pixel_centers, sample_bilinear, sample_mask
 from pidg.render.camera import Camera
 
@@ -134,6 +137,7 @@ def motion_flow_target(
     motion_mask0: Tensor | None = None,
     dilation: int = 0,
     motion_threshold: float = 1.0,
+    kernel: bool | None = None,
 ) -> FlowTarget:
     """flow_gt on frame t's pixel grid, the supervision of the Gaussian and velocity flows rendered in camera t.
 
@@ -141,7 +145,26 @@ def motion_flow_target(
     warped motion flow exceeds ``motion_threshold`` pixels. The mask is dilated by ``dilation`` pixels and ANDed
     with the validity (consistent forward and backward flow, lookup inside the image, valid depth); flow_gt is 0
     wherever the result is False.
+
+    ``kernel``: the numba kernels of :mod:`pidg.flow.decomposition_cpu` (float32; the default for float32 CPU
+    tensors) or, False, the torch functions of this module (any device and dtype; the readable reference the tests
+    compare with).
     """
+    h, w = depth1.shape
+    _check_field("backward flow", backward, h, w, 2)
+    _check_field("forward flow", forward, h, w, 2)
+    if (camera1.width, camera1.height) != (w, h):
+        raise ValueError(f"depth is {w}x{h} but camera t+1 renders {camera1.width}x{camera1.height}")
+    for name, field in (("valid_forward", valid_forward), ("valid_backward", valid_backward), ("motion mask", motion_mask0)):
+        if field is not None:
+            _check_field(name, field, h, w, None)
+    if kernel is None:  # float64 inputs ask for float64 results: the reference path
+        kernel = depth1.device.type == "cpu" and depth1.dtype == torch.float32
+    if kernel:
+        flow, valid = motion_flow_target_cpu(
+            depth1, camera0, camera1, forward, backward, valid_forward, valid_backward, motion_mask0, dilation, motion_threshold
+        )
+        return FlowTarget(flow.to(depth1.dtype), valid)
     decomposition = decompose_backward_flow(depth1, camera0, camera1, backward, valid_backward)
     warped = warp_to_first_frame(FlowTarget(decomposition.motion_flow, decomposition.valid), forward, valid_forward)
     if motion_mask0 is None:

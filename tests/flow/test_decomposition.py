@@ -189,3 +189,53 @@ def test_shapes_are_checked():
         decompose_backward_flow(scene.depth1, CAM0, CAM1, scene.backward.permute(2, 0, 1))
     with pytest.raises(ValueError, match="forward flow"):
         warp_to_first_frame(FlowTarget(scene.backward, torch.ones(H, W, dtype=torch.bool)), scene.forward[:, :-1])
+
+
+def _random_target_inputs(h: int, w: int, seed: int, with_mask: bool):
+    """Realistic cameras, a depth map with invalid patches, noisy flows (some pointing outside the image), holes in
+    both consistency masks and, optionally, a motion mask: every branch of the target's validity."""
+    gen = torch.Generator().manual_seed(seed)
+    cam0 = Camera.look_at((0.5, -3.0, 2.2), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), w, h, math.radians(55.0))
+    cam1 = Camera.look_at((0.8, -2.9, 2.3), (0.1, 0.0, 0.0), (0.0, 0.0, 1.0), w, h, math.radians(55.0))
+    depth = 3.0 + torch.rand(h, w, generator=gen)
+    depth[: h // 4, : w // 3] = 0.0  # unknown (rendered alpha too low)
+    depth[h // 2, :] = float("nan")
+    depth[-2:, -5:] = float("inf")
+    forward = torch.randn(h, w, 2, generator=gen) * 2.0
+    forward[:, -3:, 0] += 6.0  # these leave the image
+    backward = torch.randn(h, w, 2, generator=gen) * 2.0
+    valid_f = torch.rand(h, w, generator=gen) > 0.1
+    valid_b = torch.rand(h, w, generator=gen) > 0.1
+    mask = (torch.rand(h, w, generator=gen) > 0.8) if with_mask else None
+    return depth, cam0, cam1, forward, backward, valid_f, valid_b, mask
+
+
+@pytest.mark.parametrize("size", [(23, 37), (48, 64), (96, 96)])
+@pytest.mark.parametrize("with_mask", [True, False])
+@pytest.mark.parametrize("dilation", [0, 3])
+def test_the_numba_target_equals_the_torch_reference(size, with_mask, dilation):
+    h, w = size
+    depth, cam0, cam1, fwd, bwd, vf, vb, mask = _random_target_inputs(h, w, seed=h + w + dilation, with_mask=with_mask)
+    args = (depth, cam0, cam1, fwd, bwd, vf, vb, mask, dilation, 1.0)
+    reference = motion_flow_target(*args, kernel=False)
+    fast = motion_flow_target(*args, kernel=True)
+    # the validity may differ where a lookup lands within float rounding of a pixel centre; never elsewhere
+    differ = fast.valid != reference.valid
+    assert differ.sum() <= max(1, h * w // 2000)
+    same = fast.valid & reference.valid
+    assert same.sum() > 0.05 * h * w
+    torch.testing.assert_close(fast.flow[same], reference.flow[same], atol=1e-4, rtol=1e-5)
+    assert (fast.flow[~fast.valid] == 0).all()
+
+
+def test_the_numba_target_on_the_plane_scene_recovers_the_motion():
+    scene = make_plane_scene(CAM0, CAM1, (0.3, -0.2))
+    vf, vb = consistency(scene)
+    args = (scene.depth1.float(), CAM0, CAM1, scene.forward.float(), scene.backward.float(), vf, vb)
+    fast = motion_flow_target(*args, motion_mask0=scene.moving0, dilation=2)
+    assert fast.flow.dtype == torch.float32
+    reference = motion_flow_target(*args, motion_mask0=scene.moving0, dilation=2, kernel=False)
+    assert torch.equal(fast.valid, reference.valid)
+    check = fast.valid & scene.clean0
+    assert check.sum() > 50
+    torch.testing.assert_close(fast.flow[check].double(), scene.expected[check], atol=2e-3, rtol=0)
