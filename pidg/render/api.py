@@ -14,6 +14,7 @@ from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
 from pidg.render.projection import project_gaussians
+from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.rasterize_cpu import composite_cpu
 from pidg.render.rasterize_gsplat import rasterize_gsplat
 from pidg.render.rasterize_torch import composite_reference
@@ -110,7 +111,8 @@ def rasterize(
         colors: RGB [N, 3], or SH coefficients [N, K, 3] together with ``sh_degree`` (0..3).
         features: optional extra channels [N, C]; cost is linear in C and negligible for C = 0.
         background: RGB [3] composited behind the Gaussians (default black).
-        backend: "cpu" (numba kernel), "torch" (reference), "gsplat" (CUDA), or "auto".
+        backend: "cpu" (numba kernels: projection and colour, then compositing; float32 inputs, float64 ones take
+            the torch projection), "torch" (reference), "gsplat" (CUDA), or "auto".
     """
     if (scales is None) == (log_scales is None):
         raise ValueError("rasterize: pass exactly one of scales= or log_scales=")
@@ -122,15 +124,16 @@ def rasterize(
     camera = camera.to(means.device)
     bg = background.to(means.dtype) if background is not None else means.new_zeros(3)
 
-    if sh_degree is not None:
-        rgb_per_gaussian = sh_to_rgb(colors, means - camera.camera_center.to(means.dtype), sh_degree)
+    if which == "cpu" and means.dtype == torch.float32:  # projection and colour as one numba kernel
+        proj, rgb_per_gaussian = project_and_shade_cpu(means, quats, lin_scales, opacities, colors, camera, sh_degree)
     else:
-        rgb_per_gaussian = colors
-
-    if which == "gsplat":
-        return rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
-
-    proj = project_gaussians(means, quats, lin_scales, opacities, camera)
+        if sh_degree is not None:
+            rgb_per_gaussian = sh_to_rgb(colors, means - camera.camera_center.to(means.dtype), sh_degree)
+        else:
+            rgb_per_gaussian = colors
+        if which == "gsplat":
+            return rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
+        proj = project_gaussians(means, quats, lin_scales, opacities, camera)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()  # the view-space positional gradient densification reads
     n_feat = 0 if features is None else features.shape[1]
