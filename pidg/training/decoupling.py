@@ -89,19 +89,29 @@ def vote_moving(model: DynamicGaussians, frames: Sequence[Frame], vote: float, a
 
 
 class StaticDynamicDecoupling:
-    """Splits the Gaussians once, after the step before ``at_step`` (the end of densification): by the motion masks
-    when the training frames carry them, otherwise by the learned motion (``motion_px`` > 0; 0: no split)."""
+    """Splits the Gaussians once: after the step before ``at_step`` (the end of densification) by the motion masks
+    when the training frames carry them, otherwise by the learned motion (``motion_px`` > 0; 0: no split) after the
+    step before ``motion_at_step`` (default ``at_step``). A run with a static warm-up should give its deformation as
+    many steps to learn the motion as a run without one: split by motion that much later (the trainer passes
+    ``densify.stop + static_warmup``). The learned-motion split is tried at that step only, and not made if it finds
+    no moving Gaussian: the deformation has not learned the motion, and the split would freeze it for good (it did:
+    the MLP rows of the suite trained a static scene after their 500-step warm-up)."""
 
-    def __init__(self, at_step: int, vote: float = 0.4, motion_px: float = 2.0) -> None:
+    def __init__(self, at_step: int, vote: float = 0.4, motion_px: float = 2.0, motion_at_step: int | None = None) -> None:
         self.at_step = at_step
         self.vote = vote
         self.motion_px = motion_px
+        self.motion_at_step = at_step if motion_at_step is None else motion_at_step
 
     def step_post_backward(self, model: DynamicGaussians, frames: Sequence[Frame], step: int) -> bool:
         """Decouple if it is time and it has not happened yet; returns whether it did."""
-        if model.dynamic_mask is not None or step + 1 < self.at_step:
+        if model.dynamic_mask is not None:
             return False
         masks = any(f.mask is not None for f in frames)
+        if masks and step + 1 < self.at_step:
+            return False
+        if not masks and step + 1 != max(self.motion_at_step, 1):  # tried at that step only (resumes alike)
+            return False
         if not masks and self.motion_px <= 0:
             return False
         average = time_averaged_state(model, [f.time for f in frames])
@@ -109,6 +119,9 @@ class StaticDynamicDecoupling:
             dynamic = vote_dynamic(model, frames, self.vote)
         else:
             dynamic = vote_moving(model, frames, self.vote, average.means, self.motion_px)
+            if not bool(dynamic.any()):
+                logger.info("no static/dynamic decoupling at step %d: no Gaussian moves %g px in the learned motion", step, self.motion_px)
+                return False
         model.set_dynamic_mask(dynamic, static_state=average)
         logger.info(
             "static/dynamic decoupling at step %d (%s): %d dynamic, %d static Gaussians", step,

@@ -104,7 +104,10 @@ class Trainer:
         self.loss_terms: list[LossTerm] = build_loss_terms(config, self.flow_cache)
         self.strategy = DensificationStrategy(config.densify, self.extent)
         self.densify_state = self.strategy.initialize_state(self.model.num_gaussians, self.model.device)
-        self.decoupling = StaticDynamicDecoupling(config.densify.stop, config.optim.dynamic_vote, config.optim.motion_split_px)
+        self.decoupling = StaticDynamicDecoupling(
+            config.densify.stop, config.optim.dynamic_vote, config.optim.motion_split_px,
+            motion_at_step=config.densify.stop + config.optim.static_warmup,
+        )
         self.frame_generator = torch.Generator().manual_seed(config.optim.seed)
         self._order: list[int] = []
         self.step = 0

@@ -91,3 +91,17 @@ def test_no_masks_and_motion_split_off_leaves_every_gaussian_dynamic(scene):
     model = model_with(scene, Sway(amplitude=0.2))
     assert not StaticDynamicDecoupling(at_step=1, motion_px=0.0).step_post_backward(model, frames, step=0)
     assert model.dynamic_mask is None
+
+
+def test_a_learned_motion_split_waits_for_the_deformation_and_never_freezes_a_still_one(scene):
+    """Without masks the split follows the learned motion: a deformation that has learned none yet (an MLP just out
+    of its static warm-up) must not make every Gaussian static, and the split waits until ``motion_at_step``."""
+    frames = [f.__class__(f.camera, f.time, f.image_u8, None, f.name) for f in scene.train]
+    still = model_with(scene, Sway(amplitude=0.0))
+    hook = StaticDynamicDecoupling(at_step=1, vote=0.4, motion_px=1.0)
+    assert not hook.step_post_backward(still, frames, step=0)
+    assert still.dynamic_mask is None  # every Gaussian keeps deforming
+    swaying = model_with(scene, Sway(amplitude=0.2))
+    later = StaticDynamicDecoupling(at_step=1, vote=0.4, motion_px=1.0, motion_at_step=4)
+    assert not later.step_post_backward(swaying, frames, step=0) and swaying.dynamic_mask is None
+    assert later.step_post_backward(swaying, frames, step=3) and swaying.dynamic_mask is not None
