@@ -30,7 +30,14 @@ from pidg.flow.optical_flow import (
     forward_backward_consistency,
     make_estimator,
 )
-from pidg.flow.model_flow import flow_channels, model_flow_target, render_pair_flows, rendered_depth
+from pidg.flow.model_flow import (
+    flow_camera_t1,
+    flow_channels,
+    model_flow_target,
+    render_pair_flows,
+    rendered_depth,
+    supervised_flow_channels,
+)
 from pidg.flow.preprocess import FlowCache, FlowPair, open_flow_cache, preprocess_flow, run_preprocess
 
 __all__ = [
@@ -48,6 +55,7 @@ __all__ = [
     "depth_from_render",
     "dilate_mask",
     "end_point_error",
+    "flow_camera_t1",
     "flow_channels",
     "flow_features",
     "flow_target_for_pair",
@@ -56,6 +64,7 @@ __all__ = [
     "lpfm_loss",
     "make_estimator",
     "model_flow_target",
+    "supervised_flow_channels",
     "motion_flow_target",
     "motion_mask_from_flow",
     "open_flow_cache",

@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, Range, validate_config
 
 FlowKind = Literal["none", "lpfm"]
+FlowTargetKind = Literal["motion", "total"]
 EstimatorName = Literal["dis", "deepflow", "tvl1", "raft"]
 DisPreset = Literal["ultrafast", "fast", "medium"]
 
@@ -33,6 +34,14 @@ class FlowConfig:
     """lambda_v: weight of the velocity flow's L1 error inside L_LPFM (paper: 0.5)."""
     start: Annotated[int, NON_NEGATIVE] = 0
     """First training step that uses LPFM (then every step)."""
+    target: FlowTargetKind = "motion"
+    """What the rendered flows are matched to. motion (the paper, after MotionGS): the camera-compensated motion flow,
+    built with frame t+1's depth (the dataset's, else the model's own render), against flows rendered in camera t at
+    both times. total (after GaussianFlow): the optical flow itself, against flows of the Gaussians at t seen by
+    camera t and at t+1 (or advected by v) seen by camera t+1; the camera's motion is then part of the rendered
+    flow, so the flow supervises where the model puts the surface (its depth) as well as how it moves, and the
+    target needs no depth. Both supervise the pixels of the dilated motion mask where the dataset has masks; total
+    supervises every consistent pixel where it has none."""
 
     # optical flow estimation (preprocessing)
     estimator: EstimatorName = "dis"

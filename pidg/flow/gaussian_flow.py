@@ -6,7 +6,9 @@ Gaussian from t to t+1, so Gaussian i carries p to  mu_{t+1} + A (p - mu_t)  wit
     A = Sigma_{t+1}^{1/2} Sigma_t^{-1/2}
 
 (symmetric PSD square roots; the reference code's swapped Sigma_{t+1}^{-1/2} Sigma_t^{1/2} is a known defect).
-Both 2D Gaussians come from projecting the 3D Gaussians at t and at t+1 with camera t, so camera motion cancels.
+Both 2D Gaussians come from projecting the 3D Gaussians at t and at t+1 with camera t, so camera motion cancels
+(the motion flow); projecting those at t+1 with camera t+1 instead gives the total flow, which an optical flow
+measures directly (GaussianFlow's form, ``FlowConfig.target = "total"``).
 Gaussian i's flow at p is affine in p:
 
     flow_i(p) = (A - I)(p - mu_t) + (mu_{t+1} - mu_t) = M p + b,   M = A - I,   b = mu_{t+1} - mu_t - M mu_t
@@ -124,17 +126,21 @@ def gaussian_flow_features(
     scales_t1: Tensor,
     velocities: Tensor | None = None,
     dt: float = 0.0,
+    camera_t1: Camera | None = None,
 ) -> Tensor:
     """Feature channels [N, 8] (or [N, 6] without velocities) for ``rasterize(..., features=)`` at time t.
 
-    Projects the Gaussians at t and at t+1 (and x_t + v dt) with camera t -- the same projection rasterize does
-    for the image -- and drops Gaussians whose t+1 (or advected) centre is not in front of camera t.
+    Projects the Gaussians at t with camera t -- the same projection rasterize does for the image -- and those at t+1
+    (and x_t + v dt) with ``camera_t1``: None (camera t) gives the motion flow, in which camera motion cancels; frame
+    t+1's camera gives the total flow, the optical flow the model predicts. Gaussians whose t+1 (or advected) centre
+    is not in front of that camera are dropped.
     """
+    later = camera_t if camera_t1 is None else camera_t1
     proj_t = project_gaussians(means_t, quats_t, scales_t, opacities, camera_t)
-    proj_t1 = project_gaussians(means_t1, quats_t1, scales_t1, opacities, camera_t)
-    valid = proj_t1.depths.detach() > camera_t.near
+    proj_t1 = project_gaussians(means_t1, quats_t1, scales_t1, opacities, later)
+    valid = proj_t1.depths.detach() > later.near
     means2d_velocity = None
     if velocities is not None:
-        means2d_velocity, depth_v = project_velocity_means(means_t, velocities, dt, camera_t)
-        valid = valid & (depth_v.detach() > camera_t.near)
+        means2d_velocity, depth_v = project_velocity_means(means_t, velocities, dt, later)
+        valid = valid & (depth_v.detach() > later.near)
     return flow_features(proj_t, proj_t1, means2d_velocity, valid)

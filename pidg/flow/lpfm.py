@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from pidg.flow.config import FlowConfig
-from pidg.flow.decomposition import FlowTarget, motion_flow_target
+from pidg.flow.decomposition import FlowTarget, dilate_mask, motion_flow_target
 from pidg.flow.preprocess import FlowPair
 from pidg.render.api import RenderOutput
 
@@ -108,10 +108,24 @@ def depth_from_render(render: RenderOutput, min_alpha: float = DEPTH_MIN_ALPHA) 
     return torch.where(render.alpha.detach() >= min_alpha, render.depth_normalized().detach(), 0.0)
 
 
-def flow_target_for_pair(pair: FlowPair, depth1: Tensor, config: FlowConfig) -> FlowTarget:
-    """flow_gt for a cached pair, given frame t+1's depth [H, W] (dataset depth, or the model's render at t+1 in
-    camera t+1 through :func:`depth_from_render`; 0 = unknown). Motion mask: the dataset's mask of
-    frame t when present, else derived from the motion flow with ``config.motion_threshold``."""
+def total_flow_target(pair: FlowPair, config: FlowConfig) -> FlowTarget:
+    """flow_gt of ``FlowConfig.target = "total"``: the pair's forward optical flow itself, on its forward-backward
+    consistent pixels, within frame t's motion mask (dilated) where the dataset has one."""
+    valid = pair.valid_forward
+    if pair.frame0.mask is not None:
+        valid = valid & dilate_mask(pair.frame0.mask.to(valid.device), config.mask_dilation)
+    return FlowTarget(torch.where(valid.unsqueeze(-1), pair.forward, torch.zeros_like(pair.forward)), valid)
+
+
+def flow_target_for_pair(pair: FlowPair, depth1: Tensor | None, config: FlowConfig) -> FlowTarget:
+    """flow_gt for a cached pair. ``config.target`` "motion" (the paper): the motion flow, given frame t+1's depth
+    [H, W] (dataset depth, or the model's render at t+1 in camera t+1 through :func:`depth_from_render`; 0 =
+    unknown); motion mask: the dataset's mask of frame t when present, else derived from the motion flow with
+    ``config.motion_threshold``. "total": :func:`total_flow_target` (no depth needed)."""
+    if config.target == "total":
+        return total_flow_target(pair, config)
+    if depth1 is None:
+        raise ValueError("the motion-flow target needs frame t+1's depth")
     return motion_flow_target(
         depth1,
         pair.frame0.camera,

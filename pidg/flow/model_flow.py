@@ -10,25 +10,75 @@ from torch import Tensor
 
 from pidg.flow.config import FlowConfig
 from pidg.flow.decomposition import FlowTarget
-from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
+from pidg.flow.gaussian_flow import FLOW_CHANNELS, decode_flows, gaussian_flow_features
 from pidg.flow.lpfm import LPFMResult, depth_from_render, flow_target_for_pair, lpfm_loss
 from pidg.flow.preprocess import FlowPair
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import Camera, RenderOutput
+from pidg.render.footprint import footprints_touching
+from pidg.render.projection import project_gaussians
 
 
 def flow_channels(
-    model: DynamicGaussians, camera: Camera, state_t: DeformedGaussians, state_t1: DeformedGaussians, t: float, dt: float
+    model: DynamicGaussians, camera: Camera, state_t: DeformedGaussians, state_t1: DeformedGaussians, t: float, dt: float,
+    camera_t1: Camera | None = None,
 ) -> Tensor:
     """Per-Gaussian flow channels [N, 8] ([N, 6] without a material field) for a render in ``camera`` (frame t's):
     the Gaussians at t and t+1 (``state_t``, ``state_t1``), and their velocities at t advected over ``dt`` (dataset
-    time, converted to the field's physics time units by the model's time axis)."""
+    time, converted to the field's physics time units by the model's time axis). ``camera_t1``: None for the motion
+    flow (camera t at both times), frame t+1's camera for the total flow."""
     v = model.velocities(t, state_t.means) if model.material_field is not None else None
     return gaussian_flow_features(
         camera, state_t.means, state_t.quats, state_t.log_scales.exp(), model.gaussians.opacities,
-        state_t1.means, state_t1.quats, state_t1.log_scales.exp(), v, model.time_axis.to_physics(dt),
+        state_t1.means, state_t1.quats, state_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
     )
+
+
+def flow_camera_t1(pair: FlowPair, config: FlowConfig) -> Camera | None:
+    """The camera that sees the Gaussians at t+1 in the rendered flows: frame t+1's for the total-flow target,
+    None (frame t's: the motion flow) for the paper's motion-flow target."""
+    return pair.frame1.camera if config.target == "total" else None
+
+
+def supervised_flow_channels(
+    model: DynamicGaussians,
+    camera: Camera,
+    state_t: DeformedGaussians,
+    t: float,
+    t1: float,
+    dt: float,
+    supervised: Tensor,
+    deforming: bool = True,
+    camera_t1: Camera | None = None,
+) -> Tensor:
+    """:func:`flow_channels` [N, C] for a loss that reads the rendered flows only at ``supervised`` pixels [H, W]
+    of camera t: rows of Gaussians whose footprint misses them all are zero (they add nothing there, see
+    :mod:`pidg.render.footprint`), so the deformation to t+1 (``t1``), the velocities and the flow channels are
+    computed, and differentiated, for the others only. The loss and its gradients are those of the full channels.
+    ``deforming`` False (a static warm-up): the Gaussians at t+1 are the canonical ones. ``camera_t1``: as in
+    :func:`flow_channels`."""
+    n = state_t.means.shape[0]
+    channels = FLOW_CHANNELS if model.material_field is not None else FLOW_CHANNELS - 2
+    with torch.no_grad():
+        g = model.gaussians
+        proj = project_gaussians(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera)
+        rows = footprints_touching(proj.means2d, proj.radii, supervised.to(proj.means2d.device)).nonzero().squeeze(1)
+    out = state_t.means.new_zeros(n, channels)
+    if rows.numel() == 0:
+        return out
+    sub_t = DeformedGaussians(state_t.means[rows], state_t.quats[rows], state_t.log_scales[rows])
+    if deforming:
+        sub_t1 = model.at(t1, rows=rows)
+    else:
+        p = model.gaussians.params
+        sub_t1 = DeformedGaussians(p["means"][rows], p["quats"][rows], p["log_scales"][rows])
+    v = model.velocities(t, sub_t.means, rows=rows) if model.material_field is not None else None
+    sub = gaussian_flow_features(
+        camera, sub_t.means, sub_t.quats, sub_t.log_scales.exp(), model.gaussians.opacities[rows],
+        sub_t1.means, sub_t1.quats, sub_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
+    )
+    return out.index_copy(0, rows, sub.to(out.dtype))
 
 
 @torch.no_grad()
@@ -39,22 +89,28 @@ def rendered_depth(model: DynamicGaussians, state: DeformedGaussians, camera: Ca
 
 
 def model_flow_target(
-    model: DynamicGaussians, pair: FlowPair, state_t1: DeformedGaussians, config: FlowConfig
+    model: DynamicGaussians, pair: FlowPair, state_t1: DeformedGaussians | None, config: FlowConfig
 ) -> tuple[FlowTarget, Tensor | None]:
-    """flow_gt of a pair, and the rendered depth it used (None when the dataset's): frame t+1's depth is the
-    dataset's depth map when it has one, else the model's own render at t+1 in camera t+1."""
-    if pair.frame1.depth is not None:
+    """flow_gt of a pair, and the rendered depth it used (None when the dataset's, or none was needed): frame t+1's
+    depth is the dataset's depth map when it has one, else the model's own render of ``state_t1`` (the Gaussians at
+    t+1; None: ``model.at(t+1)``) in camera t+1. The total-flow target (``config.target``) needs no depth."""
+    if config.target == "total" or pair.frame1.depth is not None:
         return flow_target_for_pair(pair, pair.frame1.depth, config), None
+    if state_t1 is None:
+        with torch.no_grad():
+            state_t1 = model.at(pair.frame1.time)
     depth = rendered_depth(model, state_t1, pair.frame1.camera)
     return flow_target_for_pair(pair, depth, config), depth
 
 
 @torch.no_grad()
 def render_pair_flows(model: DynamicGaussians, pair: FlowPair, config: FlowConfig) -> tuple[RenderOutput, FlowTarget, LPFMResult]:
-    """Frame t of a pair rendered with its flow channels, the pair's target, and the flow loss and errors."""
+    """Frame t of a pair rendered with its flow channels, the pair's target, and the flow loss and errors (motion or
+    total flows, as ``config.target``)."""
     state_t, state_t1 = model.at(pair.frame0.time), model.at(pair.frame1.time)
     camera = pair.frame0.camera
-    out = model.render_state(state_t, camera, flow_channels(model, camera, state_t, state_t1, pair.frame0.time, pair.dt))
+    channels = flow_channels(model, camera, state_t, state_t1, pair.frame0.time, pair.dt, flow_camera_t1(pair, config))
+    out = model.render_state(state_t, camera, channels)
     target, _ = model_flow_target(model, pair, state_t1, config)
     flow_g, flow_v, _ = decode_flows(out.features, out.alpha)
     return out, target, lpfm_loss(flow_g, flow_v, target, out.alpha, config)

@@ -138,13 +138,18 @@ class DynamicGaussians:
         p = self.gaussians.params
         return DeformedGaussians(p["means"], p["quats"], p["log_scales"])
 
-    def at(self, t: float | Tensor, regularize: bool = False) -> DeformedGaussians:
+    def at(self, t: float | Tensor, regularize: bool = False, rows: Tensor | None = None) -> DeformedGaussians:
         """Means, quaternions and log-scales at dataset time ``t`` (static Gaussians stay canonical once decoupled);
-        with ``regularize``, also the deformation's regulariser for this pass (training)."""
+        with ``regularize``, also the deformation's regulariser for this pass (training). ``rows`` [M] (indices):
+        only those Gaussians, in that order (a loss that needs a few of them pays for a few)."""
         p = self.gaussians.params
+        means, quats, log_scales = p["means"], p["quats"], p["log_scales"]
         dynamic = self.dynamic_mask
         static = None if dynamic is None else ~dynamic
-        return self.deformation(p["means"], p["quats"], p["log_scales"], t, static_mask=static, regularize=regularize)
+        if rows is not None:
+            means, quats, log_scales = means[rows], quats[rows], log_scales[rows]
+            static = None if static is None else static[rows]
+        return self.deformation(means, quats, log_scales, t, static_mask=static, regularize=regularize)
 
     # ---- rendering -------------------------------------------------------------------------------------------
     def render(self, camera: Camera, t: float, features: Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
@@ -173,14 +178,17 @@ class DynamicGaussians:
         of the material field at positions ``means`` [N, 3] of these Gaussians at dataset time ``t``."""
         return self._field()(means, t, self.gaussians.particle_index)
 
-    def velocities(self, t: float | Tensor, means: Tensor | None = None) -> Tensor:
+    def velocities(self, t: float | Tensor, means: Tensor | None = None, rows: Tensor | None = None) -> Tensor:
         """v [N, 3] in world units per physics time unit at the Gaussians' positions at time ``t`` (``means``, or
         ``at(t)``'s); zero for static Gaussians once decoupled (they do not move, and evaluating the field only
-        where it matters keeps the step cheap)."""
+        where it matters keeps the step cheap). ``rows`` [M]: only those Gaussians (``means`` is then theirs)."""
         field = self._field()
-        means = self.at(t).means if means is None else means
+        means = self.at(t, rows=rows).means if means is None else means
         index = self.gaussians.particle_index
         dynamic = self.dynamic_mask
+        if rows is not None:
+            index = index[rows]
+            dynamic = None if dynamic is None else dynamic[rows]
         if dynamic is None:
             return field(means, t, index)[0]
         v = means.new_zeros(means.shape)

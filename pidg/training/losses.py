@@ -28,10 +28,11 @@ from pidg.flow import (
     FlowPair,
     FlowTarget,
     decode_flows,
-    flow_channels,
+    flow_camera_t1,
     flow_target_for_pair,
     lpfm_loss,
     model_flow_target,
+    supervised_flow_channels,
 )
 from pidg.metrics import ssim
 from pidg.models.deformation import DeformedGaussians
@@ -187,7 +188,10 @@ class FlowMatchingLoss(LossTerm):
     The target needs frame t+1's depth: the dataset's depth map when it has one, otherwise the model's own (a
     no-grad render at t+1 in camera t+1). That rendered depth is reused while younger than
     ``FlowConfig.target_refresh_steps`` and goes into checkpoints, so a resumed run builds the same targets as an
-    uninterrupted one. Steps whose frame starts no flow pair (the last frame) have no flow term."""
+    uninterrupted one. The target is known before the render, so only the Gaussians whose footprint reaches one of
+    its supervised pixels get flow channels (:func:`pidg.flow.supervised_flow_channels`: the same loss and
+    gradients for the cost of those Gaussians). Steps whose frame starts no flow pair (the last frame), or whose
+    target supervises no pixel, have no flow term."""
 
     name = "lpfm"
     phase = "flow"
@@ -196,7 +200,7 @@ class FlowMatchingLoss(LossTerm):
         self.config = config
         self.cache = cache
         self._targets: dict[str, _CachedTarget] = {}  # pair's first frame name -> flow_gt and what it came from
-        self._pending: tuple[FlowPair, DeformedGaussians] | None = None  # this step's pair and Gaussians at t+1
+        self._pending: FlowTarget | None = None  # this step's target
 
     def active(self, step: int) -> bool:
         return self.config.active(step)
@@ -207,28 +211,38 @@ class FlowMatchingLoss(LossTerm):
         if pair is None:
             return None
         model = inputs.model
-        next_state = model.at(pair.frame1.time) if inputs.deforming else model.canonical()
-        self._pending = (pair, next_state)
-        return flow_channels(model, inputs.frame.camera, inputs.state, next_state, inputs.frame.time, pair.dt)
+        target = self.target(model, pair, inputs.step, inputs.deforming)
+        if not bool(target.valid.any()):
+            return None
+        self._pending = target
+        return supervised_flow_channels(
+            model, inputs.frame.camera, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
+            inputs.deforming, flow_camera_t1(pair, self.config),
+        )
 
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
         if self._pending is None or features is None:
             return render.rgb.new_zeros(()), {}
-        pair, next_state = self._pending
-        self._pending = None
-        target = self.target(inputs.model, pair, next_state, inputs.step)
+        target, self._pending = self._pending, None
         flow_g, flow_v, _ = decode_flows(features, render.alpha)
         result = lpfm_loss(flow_g, flow_v, target, render.alpha, self.config)
         return self.config.lambda_lpfm * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}
 
-    def target(self, model: DynamicGaussians, pair: FlowPair, state_t1: DeformedGaussians, step: int) -> FlowTarget:
-        """The pair's flow_gt, rebuilt when its cached depth is ``target_refresh_steps`` old."""
+    def target(self, model: DynamicGaussians, pair: FlowPair, step: int, deforming: bool = True) -> FlowTarget:
+        """The pair's flow_gt, rebuilt when its cached depth is ``target_refresh_steps`` old (frame t+1's depth: the
+        dataset's, or a no-grad render of the model at t+1, canonical while ``deforming`` is False); the total-flow
+        target is built once."""
         cached = self._targets.get(pair.frame0.name)
-        if cached is not None and step - cached.step < self.config.target_refresh_steps:
+        fixed = self.config.target == "total"  # the optical flow itself: it never changes
+        if cached is not None and (fixed or step - cached.step < self.config.target_refresh_steps):
             if cached.target is None:  # restored from a checkpoint (on the CPU): rebuild from the saved depth
                 depth = pair.frame1.depth if cached.depth is None else cached.depth.to(pair.forward.device)
                 cached.target = flow_target_for_pair(pair, depth, self.config)
             return cached.target
+        state_t1 = None
+        if pair.frame1.depth is None and self.config.target == "motion":
+            with torch.no_grad():
+                state_t1 = model.at(pair.frame1.time) if deforming else model.canonical()
         target, depth = model_flow_target(model, pair, state_t1, self.config)
         self._targets[pair.frame0.name] = _CachedTarget(step, depth, target)
         return target

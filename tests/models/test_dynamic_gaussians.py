@@ -110,3 +110,78 @@ def test_velocity_flow_advects_by_the_time_axis(scene):
     assert channels[:, :6].abs().max() < 1e-3
     torch.testing.assert_close(channels[drawn, 6:8], (uv_v - uv)[drawn], atol=1e-3, rtol=1e-4)
     assert drawn.sum() > 0.5 * model.num_gaussians and (uv_v - uv)[drawn].norm(dim=-1).max() > 0.01
+
+
+def test_flow_channels_of_the_supervised_footprints_give_the_full_loss_and_gradients(scene):
+    """Only Gaussians whose footprint reaches a supervised pixel get flow channels: the rendered flows at those
+    pixels, the flow loss and every parameter's gradient equal those of the channels of all Gaussians."""
+    from pidg.flow import FlowConfig, decode_flows, flow_channels, lpfm_loss, supervised_flow_channels
+    from pidg.flow.decomposition import FlowTarget
+
+    model = moved(DynamicGaussians.from_scene(scene, GaussianModelConfig(), SMALL, MaterialFieldConfig(width=8, embedding_dim=4)))
+    frame, t1, dt = scene.train[1], scene.train[2].time, scene.train[2].time - scene.train[1].time
+    h, w = frame.height, frame.width
+    supervised = torch.zeros(h, w, dtype=torch.bool)
+    supervised[4:12, 18:27] = True  # a patch: most Gaussians miss it
+    gen = torch.Generator().manual_seed(3)
+    target = FlowTarget(torch.randn(h, w, 2, generator=gen) * supervised.unsqueeze(-1), supervised)
+    params = list(model.gaussians.params.values()) + list(model.deformation.parameters()) + list(model.material_field.parameters())
+
+    def loss_and_grads(subset: bool):
+        for p in params:
+            p.grad = None
+        state = model.at(frame.time)
+        if subset:
+            channels = supervised_flow_channels(model, frame.camera, state, frame.time, t1, dt, supervised)
+        else:
+            channels = flow_channels(model, frame.camera, state, model.at(t1), frame.time, dt)
+        out = model.render_state(state, frame.camera, channels)
+        flow_g, flow_v, _ = decode_flows(out.features, out.alpha)
+        loss = lpfm_loss(flow_g, flow_v, target, out.alpha, FlowConfig(min_alpha=0.0)).loss
+        loss.backward()
+        grads = [None if p.grad is None else (p.grad.to_dense() if p.grad.is_sparse else p.grad).clone() for p in params]
+        return loss.detach(), flow_g.detach()[supervised], grads, channels
+
+    full_loss, full_flow, full_grads, full_channels = loss_and_grads(False)
+    sub_loss, sub_flow, sub_grads, sub_channels = loss_and_grads(True)
+    skipped = (sub_channels.abs().sum(-1) == 0) & (full_channels.abs().sum(-1) > 0)
+    assert skipped.sum() > 0.2 * model.num_gaussians  # the subset is a real saving here
+    assert float(full_loss) > 0
+    torch.testing.assert_close(sub_loss, full_loss, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(sub_flow, full_flow, rtol=1e-4, atol=1e-5)
+    n_gaussian_params = len(model.gaussians.params)
+    for i, (p, a, b) in enumerate(zip(params, full_grads, sub_grads)):
+        if a is None:
+            assert b is None or b.abs().max() == 0
+            continue
+        if i < n_gaussian_params:  # per-Gaussian rows the flows skip: bit for bit the full gradient (0 from flows)
+            outside = sub_channels.abs().sum(-1) == 0
+            assert torch.equal(b[outside], a[outside])
+        # float32: the sqrt of tiny 2D covariances rounds differently when summed in another order
+        torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-2 * float(a.abs().max()))
+
+
+def test_footprints_touching_finds_exactly_the_gaussians_drawn_on_masked_pixels(scene):
+    """Against the renderer itself: a Gaussian whose feature channel is non-zero on a masked pixel must be found."""
+    from pidg.render.footprint import footprints_touching
+    from pidg.render.projection import project_gaussians
+
+    model = moved(DynamicGaussians.from_scene(scene, GaussianModelConfig(), SMALL, None))
+    frame = scene.train[0]
+    mask = torch.zeros(frame.height, frame.width, dtype=torch.bool)
+    mask[10:14, 5:9] = True
+    with torch.no_grad():
+        state = model.at(frame.time)
+        proj = project_gaussians(state.means, state.quats, state.log_scales.exp(), model.gaussians.opacities, frame.camera)
+        found = footprints_touching(proj.means2d, proj.radii, mask)
+        # render each Gaussian's own indicator channel (one-hot features) and see which ones reach the mask
+        n = model.num_gaussians
+        reached = torch.zeros(n, dtype=torch.bool)
+        for block in torch.arange(n).split(64):
+            onehot = torch.zeros(n, len(block))
+            onehot[block, torch.arange(len(block))] = 1.0
+            out = model.render_state(state, frame.camera, onehot)
+            reached[block] = (out.features[mask] > 0).any(dim=0)
+    assert reached.sum() > 0
+    assert not (reached & ~found).any()  # never misses one that is drawn there
+    assert found.sum() < 0.5 * n  # and is not trivially everything

@@ -106,6 +106,28 @@ def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path):
         assert torch.allclose(p, resumed.model.gaussians.params[name], atol=1e-5, rtol=1e-4), name
 
 
+def test_total_flow_target_is_the_optical_flow_and_is_built_once(scene, tmp_path):
+    """--flow.target total: each pair's target is its forward optical flow (inside the dilated motion mask), built once
+    without rendering any depth, and the rendered flows see the Gaussians at t+1 with camera t+1."""
+    cfg = physics_flow_config(tmp_path, iterations=20)
+    cfg.flow = dataclasses.replace(cfg.flow, target="total", target_refresh_steps=1)
+    trainer = Trainer(cfg, scene)
+    flow_term = next(term for term in trainer.loss_terms if term.name == "lpfm")
+    renders = []
+    original = trainer.model.render_state
+    trainer.model.render_state = lambda *a, **k: renders.append(1) or original(*a, **k)  # count every render
+    trainer.train()
+    assert len(renders) == 20  # the step's own render only: no depth render for targets
+    assert any(h.get("lpfm_valid_pixels", 0) > 0 for h in trainer.history)
+    pair = trainer.flow_cache.pair(0)
+    cached = flow_term._targets[pair.frame0.name]
+    assert cached.depth is None and cached.step < 8  # built at the first visit, never refreshed
+    grown = torch.nn.functional.max_pool2d(pair.frame0.mask.float()[None, None], 7, 1, 3)[0, 0] > 0
+    expected_valid = pair.valid_forward & grown
+    assert torch.equal(cached.target.valid, expected_valid)
+    assert torch.equal(cached.target.flow[expected_valid], pair.forward[expected_valid])
+
+
 def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):
     trainer = Trainer(physics_flow_config(tmp_path, iterations=1), scene)
     pair = trainer.flow_cache.pair(0)
@@ -114,7 +136,7 @@ def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):
     flow_term = next(term for term in trainer.loss_terms if term.name == "lpfm")
     state_t1 = trainer.model.at(pair.frame1.time)
     try:
-        targets = [flow_term.target(trainer.model, pair, state_t1, step=0), model_flow_target(trainer.model, pair, state_t1, trainer.config.flow)[0]]
+        targets = [flow_term.target(trainer.model, pair, step=0), model_flow_target(trainer.model, pair, state_t1, trainer.config.flow)[0]]
     finally:
         pair.frame1.depth = None
     expected = flow_target_for_pair(pair, depth, trainer.config.flow)
