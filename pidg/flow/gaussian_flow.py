@@ -25,7 +25,8 @@ from torch import Tensor
 
 from pidg.flow.optical_flow import pixel_centers
 from pidg.render.camera import Camera
-from pidg.render.projection import Projection, project_gaussians
+from pidg.render.api import project
+from pidg.render.projection import Projection
 
 FLOW_CHANNELS = 8  # with the velocity flow; 6 without
 DECODE_MIN_ALPHA = 1e-4  # below this accumulated alpha a pixel has no flow (division by ~0)
@@ -136,8 +137,8 @@ def gaussian_flow_features(
     is not in front of that camera are dropped.
     """
     later = camera_t if camera_t1 is None else camera_t1
-    proj_t = project_gaussians(means_t, quats_t, scales_t, opacities, camera_t)
-    proj_t1 = project_gaussians(means_t1, quats_t1, scales_t1, opacities, later)
+    proj_t = project(means_t, quats_t, scales_t, opacities, camera_t)
+    proj_t1 = project(means_t1, quats_t1, scales_t1, opacities, later)
     valid = proj_t1.depths.detach() > later.near
     means2d_velocity = None
     if velocities is not None:

@@ -16,8 +16,8 @@ from pidg.flow.preprocess import FlowPair
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import Camera, RenderOutput
+from pidg.render.api import project
 from pidg.render.footprint import footprints_touching
-from pidg.render.projection import project_gaussians
 
 
 def flow_channels(
@@ -62,7 +62,7 @@ def supervised_flow_channels(
     channels = FLOW_CHANNELS if model.material_field is not None else FLOW_CHANNELS - 2
     with torch.no_grad():
         g = model.gaussians
-        proj = project_gaussians(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera)
+        proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera)
         rows = footprints_touching(proj.means2d, proj.radii, supervised.to(proj.means2d.device)).nonzero().squeeze(1)
     out = state_t.means.new_zeros(n, channels)
     if rows.numel() == 0:

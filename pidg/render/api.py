@@ -13,7 +13,7 @@ from torch import Tensor
 from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
-from pidg.render.projection import project_gaussians
+from pidg.render.projection import Projection, project_gaussians
 from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.rasterize_cpu import composite_cpu
 from pidg.render.rasterize_gsplat import rasterize_gsplat
@@ -86,6 +86,14 @@ def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cp
     if backend == "gsplat" and device.type != "cuda":
         raise ValueError("rasterize: the gsplat backend needs CUDA tensors")
     return backend  # type: ignore[return-value]
+
+
+def project(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> Projection:
+    """The projection ``rasterize`` uses (``project_gaussians``; the numba kernel for float32 CPU tensors), for
+    callers that need screen-space Gaussians of their own (Gaussian flow, footprints)."""
+    if means.device.type == "cpu" and means.dtype == torch.float32:
+        return project_and_shade_cpu(means, quats, scales, opacities, means.new_zeros(means.shape[0], 3), camera, None)[0]
+    return project_gaussians(means, quats, scales, opacities, camera)
 
 
 def rasterize(

@@ -9,18 +9,32 @@ gradient w.r.t. the prediction is three more blurs of closed-form maps:
   dS/dp = blur(dS/dmu_p) + 2 p blur(dS/dE_pp) + g blur(dS/dE_pg)      (the zero-padded blur is self-adjoint)
   dS/dmu_p = 2 mu_g (A2 - A1) / (B1 B2) - 2 mu_p s (1/B1 - 1/B2),  dS/dE_pp = -s / B2,  dS/dE_pg = 2 A1 / (B1 B2).
 
-Each pass is one kernel that forms its maps on the fly, one band of 16 output rows of one channel per task: the
-forward builds p, g, p^2, g^2, p g on the band's rows plus the window's margin, blurs them vertically then
-horizontally a row at a time and evaluates s and the three derivative maps there; the backward does the same
-with the derivative maps and combines them with p and g. No full-image temporary is made (building the maps
-with torch ops around a blur kernel cost as much again as the blurs). The horizontal pass reads rows padded with
-zeros, so its loops have fixed bounds and vectorise: with bounds clipped at the image edge they ran 8x slower,
-which made the previous version of this module scalar (3.8x slower at 400x400, measured).
+Layout: the kernels read the [H, W, C] images in place as rows of W*C floats (channels interleaved), so no
+transposed copy is made: the vertical pass is the same for every element of a row, and the horizontal pass takes
+its taps C elements apart. The blur is separable, so its two passes can run in either order; here the vertical
+pass runs first, on whole rows:
+
+* forward, one image row at a time: the vertical pass forms p, g, p^2, g^2, p g from the 11 input rows around it
+  and keeps the five sums in registers (the tap loop is unrolled, the loop over the row vectorises), writing one
+  row per map into a buffer with 5*C zeros on both sides; the horizontal pass over those rows has fixed bounds, so
+  it vectorises too, and evaluates s and the three derivative maps in the same loop. The derivative maps' own
+  horizontal blur (the first half of the backward's blurs) follows at once, while the row is in cache, so the
+  forward stores the three x-blurred derivative maps and no unblurred one.
+* backward: only the vertical pass of those three maps is left, again 11 rows in registers, combined with p and
+  g in the same loop.
+
+Rows near the top and bottom edge, whose window is cut by the zero padding, take a slower loop that only adds
+the taps inside the image (the same sums in the same order). Only a few small per-thread row buffers are
+allocated; no full-image temporary except the x-blurred derivative maps the backward needs. Work is split into
+bands of ``_BAND`` rows, a contiguous range of bands per thread; each band sums its SSIM values (per column in
+float32, then the band in float64) into its own slot, and the slots are summed in a fixed order, so the value
+does not depend on the number of threads and every output is the same bit for bit from run to run.
 
 ``pidg.metrics.ssim(..., padding="zeros")`` is the readable autograd reference the tests compare with.
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 import torch
 from numba import njit, prange
@@ -28,10 +42,12 @@ from torch import Tensor
 
 from pidg.metrics import SSIM_K, SSIM_WIN_SIGMA, SSIM_WIN_SIZE
 
-_BAND = 16  # output rows per parallel task
-# Blur loops may contract multiply-adds into FMAs and reassociate nothing else: the result is the same on every run
-# of a build (no reduction depends on the thread schedule), and the lane loops vectorise.
-_BLUR_FASTMATH = {"contract", "nsz", "arcp"}
+_BAND = 8  # rows per band: the unit of the deterministic value sum
+_K = SSIM_WIN_SIZE  # taps; compile-time constants in the kernels, so the tap loops unroll
+_R = SSIM_WIN_SIZE // 2
+# Blur loops may contract multiply-adds into FMAs; nothing is reassociated, so each output is one fixed sequence of
+# operations (the same on every run of a build) and the loops over a row vectorise without reordering any sum.
+_FASTMATH = {"contract", "nsz", "arcp"}
 
 
 def gaussian_window_1d(size: int = SSIM_WIN_SIZE, sigma: float = SSIM_WIN_SIGMA) -> np.ndarray:
@@ -40,168 +56,256 @@ def gaussian_window_1d(size: int = SSIM_WIN_SIZE, sigma: float = SSIM_WIN_SIGMA)
     return (k / k.sum()).astype(np.float32)
 
 
-@njit(cache=True, inline="always", fastmath=_BLUR_FASTMATH)
-def _blur_band_y(band, n_maps, row, kernel, out):  # pragma: no cover - compiled
-    """out[j, radius + x] = sum_k kernel[k] band[j, row + k, x]: the vertical pass of one output row from a band
-    whose rows are already zero-padded, written into a row with ``radius`` zeros on both sides (the horizontal pass
-    then needs no bounds: loops with fixed bounds vectorise, clipped ones ran 8x slower, measured)."""
-    width = band.shape[2]
-    radius = kernel.shape[0] // 2
-    for j in range(n_maps):
-        for x in range(width + 2 * radius):
-            out[j, x] = np.float32(0.0)
-        for k in range(kernel.shape[0]):
-            w = kernel[k]
-            for x in range(width):
-                out[j, radius + x] += w * band[j, row + k, x]
-
-
-@njit(cache=True, inline="always", fastmath=_BLUR_FASTMATH)
-def _blur_rows_x(padded, n_maps, kernel, out):  # pragma: no cover - compiled
-    """out[j, x] = sum_k kernel[k] padded[j, x + k]: the horizontal pass over rows padded by ``radius`` zeros."""
-    width = out.shape[1]
-    for j in range(n_maps):
-        for x in range(width):
-            out[j, x] = np.float32(0.0)
-        for k in range(kernel.shape[0]):
-            w = kernel[k]
-            for x in range(width):
-                out[j, x] += w * padded[j, x + k]
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _blur_maps(maps, kernel, out):  # pragma: no cover - compiled
-    """out = the zero-padded separable blur of maps [M, H, W], one band of rows per task."""
-    n_maps, height, width = maps.shape
-    radius = kernel.shape[0] // 2
-    n_bands = (height + _BAND - 1) // _BAND
-    for job in prange(n_maps * n_bands):
-        m, y0 = job // n_bands, (job % n_bands) * _BAND
-        y1 = min(height, y0 + _BAND)
-        band = np.zeros((1, y1 - y0 + 2 * radius, width), dtype=np.float32)
-        for r in range(y1 - y0 + 2 * radius):
-            yy = y0 + r - radius
-            if 0 <= yy < height:
-                for x in range(width):
-                    band[0, r, x] = maps[m, yy, x]
-        vert = np.empty((1, width + 2 * radius), dtype=np.float32)
-        horiz = np.empty((1, width), dtype=np.float32)
-        for y in range(y0, y1):
-            _blur_band_y(band, 1, y - y0, kernel, vert)
-            _blur_rows_x(vert, 1, kernel, horiz)
-            for x in range(width):
-                out[m, y, x] = horiz[0, x]
-
-
-@njit(parallel=True, cache=True, nogil=True, fastmath=_BLUR_FASTMATH)
-def _ssim_forward(p, g, kernel, c1, c2, row_sums, derivs):  # pragma: no cover - compiled
-    """p, g [C, H, W] -> row_sums [C, H] of the SSIM map, and derivs [3, C, H, W]: its derivative maps w.r.t.
-    mu_p, E[p^2] and E[p g]. Each task takes one channel's band of output rows: it forms the five maps (p, g, p^2,
-    g^2, p g) on the band's rows plus the window's margin (zero outside the image), blurs them vertically then
-    horizontally one output row at a time, and evaluates SSIM there: no full-image temporary."""
-    n_ch, height, width = p.shape
-    radius = kernel.shape[0] // 2
-    n_bands = (height + _BAND - 1) // _BAND
-    for job in prange(n_ch * n_bands):
-        c, y0 = job // n_bands, (job % n_bands) * _BAND
-        y1 = min(height, y0 + _BAND)
-        band = np.zeros((5, y1 - y0 + 2 * radius, width), dtype=np.float32)
-        for r in range(y1 - y0 + 2 * radius):
-            yy = y0 + r - radius
-            if 0 <= yy < height:
-                for x in range(width):
-                    a, b = p[c, yy, x], g[c, yy, x]
-                    band[0, r, x] = a
-                    band[1, r, x] = b
-                    band[2, r, x] = a * a
-                    band[3, r, x] = b * b
-                    band[4, r, x] = a * b
-        vert = np.empty((5, width + 2 * radius), dtype=np.float32)
-        mu = np.empty((5, width), dtype=np.float32)
-        for y in range(y0, y1):
-            _blur_band_y(band, 5, y - y0, kernel, vert)
-            _blur_rows_x(vert, 5, kernel, mu)
-            total = 0.0
-            for x in range(width):
-                mp, mg = mu[0, x], mu[1, x]
-                a1 = np.float32(2.0) * mp * mg + c1
-                a2 = np.float32(2.0) * (mu[4, x] - mp * mg) + c2
-                b1 = mp * mp + mg * mg + c1
-                b2 = (mu[2, x] - mp * mp) + (mu[3, x] - mg * mg) + c2
-                inv_b1 = np.float32(1.0) / b1
-                inv_b2 = np.float32(1.0) / b2
-                inv_b1b2 = inv_b1 * inv_b2
-                s = a1 * a2 * inv_b1b2
-                total += s
-                derivs[0, c, y, x] = np.float32(2.0) * mg * (a2 - a1) * inv_b1b2 - np.float32(2.0) * mp * s * (inv_b1 - inv_b2)
-                derivs[1, c, y, x] = -s * inv_b2
-                derivs[2, c, y, x] = np.float32(2.0) * a1 * inv_b1b2
-            row_sums[c, y] = total
-
-
-@njit(parallel=True, cache=True, nogil=True, fastmath=_BLUR_FASTMATH)
-def _ssim_gradient(p, g, derivs, kernel, scale, grad):  # pragma: no cover - compiled
-    """grad [C, H, W] = scale * (blur(d_mu) + 2 p blur(d_pp) + g blur(d_pg)) from the derivative maps, band by band
-    like the forward (the zero-padded blur with a symmetric window is self-adjoint)."""
-    n_ch, height, width = p.shape
-    radius = kernel.shape[0] // 2
-    n_bands = (height + _BAND - 1) // _BAND
-    for job in prange(n_ch * n_bands):
-        c, y0 = job // n_bands, (job % n_bands) * _BAND
-        y1 = min(height, y0 + _BAND)
-        band = np.zeros((3, y1 - y0 + 2 * radius, width), dtype=np.float32)
-        for r in range(y1 - y0 + 2 * radius):
-            yy = y0 + r - radius
-            if 0 <= yy < height:
-                for j in range(3):
-                    for x in range(width):
-                        band[j, r, x] = derivs[j, c, yy, x]
-        vert = np.empty((3, width + 2 * radius), dtype=np.float32)
-        blurred = np.empty((3, width), dtype=np.float32)
-        for y in range(y0, y1):
-            _blur_band_y(band, 3, y - y0, kernel, vert)
-            _blur_rows_x(vert, 3, kernel, blurred)
-            for x in range(width):
-                grad[c, y, x] = scale * (blurred[0, x] + np.float32(2.0) * p[c, y, x] * blurred[1, x] + g[c, y, x] * blurred[2, x])
-
-
 _WINDOW = gaussian_window_1d()
+_TAPS = tuple(np.float32(w) for w in _WINDOW)  # a global tuple: numba compiles it in as constants
 
 
-def _chw(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _vblur_5maps(p, g, y, vert, off):  # pragma: no cover - compiled
+    """vert[:, off + i] = the vertical blur at row y of p, g, p^2, g^2, p g (rows [H, L]); zero outside the image."""
+    height, length = p.shape
+    if _R <= y < height - _R:  # the whole window inside: unrolled taps, sums in registers
+        r0 = y - _R
+        for i in range(length):
+            s0 = s1 = s2 = s3 = s4 = np.float32(0.0)
+            for k in range(_K):
+                w = _TAPS[k]
+                a = p[r0 + k, i]
+                b = g[r0 + k, i]
+                s0 += w * a
+                s1 += w * b
+                s2 += w * (a * a)
+                s3 += w * (b * b)
+                s4 += w * (a * b)
+            vert[0, off + i] = s0
+            vert[1, off + i] = s1
+            vert[2, off + i] = s2
+            vert[3, off + i] = s3
+            vert[4, off + i] = s4
+    else:  # cut by the edge: add the taps inside the image, in the same order
+        for j in range(5):
+            for i in range(length):
+                vert[j, off + i] = np.float32(0.0)
+        for k in range(_K):
+            r = y - _R + k
+            if 0 <= r < height:
+                w = _TAPS[k]
+                for i in range(length):
+                    a = p[r, i]
+                    b = g[r, i]
+                    vert[0, off + i] += w * a
+                    vert[1, off + i] += w * b
+                    vert[2, off + i] += w * (a * a)
+                    vert[3, off + i] += w * (b * b)
+                    vert[4, off + i] += w * (a * b)
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _vblur_3maps(maps, y, out):  # pragma: no cover - compiled
+    """out[j, i] = the vertical blur at row y of maps[j] ([3, H, L]); zero outside the image."""
+    height, length = maps.shape[1], maps.shape[2]
+    if _R <= y < height - _R:
+        r0 = y - _R
+        for i in range(length):
+            s0 = s1 = s2 = np.float32(0.0)
+            for k in range(_K):
+                w = _TAPS[k]
+                s0 += w * maps[0, r0 + k, i]
+                s1 += w * maps[1, r0 + k, i]
+                s2 += w * maps[2, r0 + k, i]
+            out[0, i] = s0
+            out[1, i] = s1
+            out[2, i] = s2
+    else:
+        for j in range(3):
+            for i in range(length):
+                out[j, i] = np.float32(0.0)
+        for k in range(_K):
+            r = y - _R + k
+            if 0 <= r < height:
+                w = _TAPS[k]
+                for i in range(length):
+                    out[0, i] += w * maps[0, r, i]
+                    out[1, i] += w * maps[1, r, i]
+                    out[2, i] += w * maps[2, r, i]
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _ssim_row(vert, n_ch, c1, c2, col, derivs, off):  # pragma: no cover - compiled
+    """Horizontal pass of one row of the five vertically blurred maps (``vert``, padded by R*C zeros; neighbours
+    are C elements apart), then SSIM per element: col[i] += s; derivs[:, off + i] = dS/dmu_p, dS/dE_pp, dS/dE_pg
+    (skipped when ``derivs`` has no rows)."""
+    length = col.shape[0]
+    if derivs.shape[0] == 0:
+        for i in range(length):
+            m0 = m1 = m2 = m3 = m4 = np.float32(0.0)
+            for k in range(_K):
+                w = _TAPS[k]
+                m0 += w * vert[0, i + k * n_ch]
+                m1 += w * vert[1, i + k * n_ch]
+                m2 += w * vert[2, i + k * n_ch]
+                m3 += w * vert[3, i + k * n_ch]
+                m4 += w * vert[4, i + k * n_ch]
+            mpg = m0 * m1
+            a1 = np.float32(2.0) * mpg + c1
+            a2 = np.float32(2.0) * (m4 - mpg) + c2
+            b1 = m0 * m0 + m1 * m1 + c1
+            b2 = (m2 - m0 * m0) + (m3 - m1 * m1) + c2
+            col[i] += (a1 * a2) / (b1 * b2)
+        return
+    for i in range(length):
+        m0 = m1 = m2 = m3 = m4 = np.float32(0.0)
+        for k in range(_K):
+            w = _TAPS[k]
+            m0 += w * vert[0, i + k * n_ch]
+            m1 += w * vert[1, i + k * n_ch]
+            m2 += w * vert[2, i + k * n_ch]
+            m3 += w * vert[3, i + k * n_ch]
+            m4 += w * vert[4, i + k * n_ch]
+        mpg = m0 * m1
+        a1 = np.float32(2.0) * mpg + c1
+        a2 = np.float32(2.0) * (m4 - mpg) + c2
+        b1 = m0 * m0 + m1 * m1 + c1
+        b2 = (m2 - m0 * m0) + (m3 - m1 * m1) + c2
+        inv_b1b2 = np.float32(1.0) / (b1 * b2)
+        inv_b1 = b2 * inv_b1b2
+        inv_b2 = b1 * inv_b1b2
+        s = a1 * a2 * inv_b1b2
+        col[i] += s
+        derivs[0, off + i] = np.float32(2.0) * m1 * (a2 - a1) * inv_b1b2 - np.float32(2.0) * m0 * s * (inv_b1 - inv_b2)
+        derivs[1, off + i] = -s * inv_b2
+        derivs[2, off + i] = np.float32(2.0) * a1 * inv_b1b2
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _hblur_3maps(padded, n_ch, y, out):  # pragma: no cover - compiled
+    """out[j, y, i] = the horizontal blur of the padded rows ``padded[j]`` (neighbours C elements apart)."""
+    length = out.shape[2]
+    for i in range(length):
+        s0 = s1 = s2 = np.float32(0.0)
+        for k in range(_K):
+            w = _TAPS[k]
+            s0 += w * padded[0, i + k * n_ch]
+            s1 += w * padded[1, i + k * n_ch]
+            s2 += w * padded[2, i + k * n_ch]
+        out[0, y, i] = s0
+        out[1, y, i] = s1
+        out[2, y, i] = s2
+
+
+@njit(cache=True, inline="always")
+def _band_range(chunk, n_chunks, n_bands):  # pragma: no cover - compiled
+    return chunk * n_bands // n_chunks, (chunk + 1) * n_bands // n_chunks
+
+
+@njit(parallel=True, cache=True, nogil=True, fastmath=_FASTMATH)
+def _ssim_forward(p, g, n_ch, c1, c2, n_threads, band_sums, dx):  # pragma: no cover - compiled
+    """p, g [H, W*C] -> band_sums [n_bands] (float64 sums of the SSIM map over each band of rows) and, unless dx
+    has no maps, dx [3, H, W*C]: the derivative maps w.r.t. mu_p, E[p^2], E[p g], already blurred horizontally."""
+    height, length = p.shape
+    pad = _R * n_ch
+    n_bands = band_sums.shape[0]
+    n_chunks = min(n_threads, n_bands)
+    n_derivs = 3 if dx.shape[0] > 0 else 0
+    for chunk in prange(n_chunks):
+        vert = np.zeros((5, length + 2 * pad), dtype=np.float32)
+        derivs = np.zeros((n_derivs, length + 2 * pad), dtype=np.float32)
+        col = np.empty(length, dtype=np.float32)
+        b0, b1 = _band_range(chunk, n_chunks, n_bands)
+        for band in range(b0, b1):
+            col[:] = 0.0
+            for y in range(band * _BAND, min(height, (band + 1) * _BAND)):
+                _vblur_5maps(p, g, y, vert, pad)
+                _ssim_row(vert, n_ch, c1, c2, col, derivs, pad)
+                if n_derivs > 0:
+                    _hblur_3maps(derivs, n_ch, y, dx)
+            total = 0.0
+            for i in range(length):
+                total += col[i]
+            band_sums[band] = total
+
+
+@njit(parallel=True, cache=True, nogil=True, fastmath=_FASTMATH)
+def _ssim_backward(p, g, dx, scale, n_threads, grad):  # pragma: no cover - compiled
+    """grad [H, W*C] = scale * (blur(d_mu) + 2 p blur(d_pp) + g blur(d_pg)): the vertical pass over the forward's
+    x-blurred maps dx [3, H, W*C], combined with p and g in the same loop."""
+    height, length = p.shape
+    n_bands = (height + _BAND - 1) // _BAND
+    n_chunks = min(n_threads, n_bands)
+    for chunk in prange(n_chunks):
+        blurred = np.empty((3, length), dtype=np.float32)
+        b0, b1 = _band_range(chunk, n_chunks, n_bands)
+        for y in range(b0 * _BAND, min(height, b1 * _BAND)):
+            _vblur_3maps(dx, y, blurred)
+            for i in range(length):
+                grad[y, i] = scale * (blurred[0, i] + np.float32(2.0) * p[y, i] * blurred[1, i] + g[y, i] * blurred[2, i])
+
+
+@njit(parallel=True, cache=True, nogil=True, fastmath=_FASTMATH)
+def _blur_maps(maps, n_threads, out):  # pragma: no cover - compiled
+    """out = the zero-padded separable blur of maps [M, H, W]: vertical pass into a padded row, then horizontal."""
+    n_maps, height, width = maps.shape
+    n_rows = n_maps * height
+    n_chunks = min(n_threads, n_rows)
+    for chunk in prange(n_chunks):
+        row = np.zeros(width + 2 * _R, dtype=np.float32)
+        for job in range(chunk * n_rows // n_chunks, (chunk + 1) * n_rows // n_chunks):
+            m, y = job // height, job % height
+            for i in range(width):
+                row[_R + i] = np.float32(0.0)
+            for k in range(_K):
+                r = y - _R + k
+                if 0 <= r < height:
+                    w = _TAPS[k]
+                    for i in range(width):
+                        row[_R + i] += w * maps[m, r, i]
+            for i in range(width):
+                s = np.float32(0.0)
+                for k in range(_K):
+                    s += _TAPS[k] * row[i + k]
+                out[m, y, i] = s
+
+
+def _rows(t: Tensor) -> np.ndarray:
+    """[H, W, C] tensor -> [H, W*C] float32 rows (a view when it already is contiguous float32)."""
+    height, width, n_ch = t.shape
+    return t.detach().to(torch.float32).contiguous().numpy().reshape(height, width * n_ch)
 
 
 def blur(maps: Tensor) -> Tensor:
     """[M, H, W] float32 -> same shape, blurred by the 11-tap sigma-1.5 Gaussian with zero padding."""
-    src = _chw(maps)
+    src = maps.detach().to(torch.float32).contiguous().numpy()
     out = np.empty_like(src)
-    _blur_maps(src, _WINDOW, out)
+    _blur_maps(src, numba.get_num_threads(), out)
     return torch.from_numpy(out)
 
 
 class _FusedSSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred: Tensor, gt: Tensor) -> Tensor:  # type: ignore[override]
-        p, g = _chw(pred), _chw(gt)
-        row_sums = np.empty(p.shape[:2], dtype=np.float64)
-        derivs = np.empty((3, *p.shape), dtype=np.float32)
+        p, g = _rows(pred), _rows(gt)
+        n_ch = pred.shape[2]
+        band_sums = np.empty((p.shape[0] + _BAND - 1) // _BAND, dtype=np.float64)
+        need_grad = ctx.needs_input_grad[0]
+        dx = np.empty((3 if need_grad else 0, *p.shape), dtype=np.float32)
         c1, c2 = np.float32(SSIM_K[0] ** 2), np.float32(SSIM_K[1] ** 2)
-        _ssim_forward(p, g, _WINDOW, c1, c2, row_sums, derivs)
-        ctx.maps = (p, g, derivs)
-        ctx.dtype = pred.dtype
-        return torch.tensor(row_sums.sum() / p.size, dtype=pred.dtype)
+        _ssim_forward(p, g, n_ch, c1, c2, numba.get_num_threads(), band_sums, dx)
+        if need_grad:
+            ctx.save_for_backward(pred, gt)  # (re-read in backward: a view costs nothing, and autograd checks versions)
+            ctx.dx = dx
+        return torch.tensor(band_sums.sum() / p.size, dtype=pred.dtype)
 
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
-        p, g, derivs = ctx.maps
+        pred, gt = ctx.saved_tensors
+        p, g = _rows(pred), _rows(gt)
         out = np.empty_like(p)
-        _ssim_gradient(p, g, derivs, _WINDOW, np.float32(float(grad) / p.size), out)
-        return torch.from_numpy(out).to(ctx.dtype), None
+        _ssim_backward(p, g, ctx.dx, np.float32(float(grad) / p.size), numba.get_num_threads(), out)
+        return torch.from_numpy(out).view(pred.shape).to(pred.dtype), None
 
 
 def fused_ssim(pred: Tensor, gt: Tensor) -> Tensor:
-    """Mean zero-padded SSIM of ``pred`` vs ``gt`` ([H, W, C] or [C, H, W] maps with the same layout), float32.
+    """Mean zero-padded SSIM of ``pred`` vs ``gt`` (one [H, W, C] image each, same shape), float32.
 
     Differentiable in ``pred`` only (the ground truth is data). CPU tensors; the value equals
     ``metrics.ssim(pred, gt, padding="zeros")`` up to float32 rounding.
@@ -212,6 +316,4 @@ def fused_ssim(pred: Tensor, gt: Tensor) -> Tensor:
         raise ValueError(f"fused_ssim: expected one image [H, W, C], got shape {tuple(pred.shape)}")
     if pred.device.type != "cpu":
         raise ValueError("fused_ssim: CPU tensors only (use metrics.ssim on other devices)")
-    # [H, W, C] -> [C, H, W] maps (the kernels copy them to contiguous float32)
-    chw_pred, chw_gt = pred.permute(2, 0, 1), gt.permute(2, 0, 1)
-    return _FusedSSIM.apply(chw_pred, chw_gt)
+    return _FusedSSIM.apply(pred, gt)
