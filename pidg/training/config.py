@@ -181,9 +181,9 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 #: and jumpingjacks at 400x400 (README, "D-NeRF on a CPU"): densification until 5000 with an opacity reset every 2000
 #: steps leaves 3000 steps to recover from each reset; the earlier 3600-step schedule densified until 2000 with a
 #: reset at 1000, whose pruning took 22k Gaussians down to 4k and left bouncingballs blurred (33.4 dB on val, 38.3
-#: with this schedule).
+#: with this schedule). Uncapped, lego grew past 120k Gaussians (1.5 it/s): densification stops adding at 30k.
 CPU_DNERF_SCHEDULE = {"iterations": 8000, "densify_start": 300, "densify_stop": 5000, "opacity_reset_every": 2000,
-                      "random_init_points": 20_000}
+                      "random_init_points": 20_000, "max_gaussians": 30_000}
 
 
 def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLayout | None = None) -> TrainConfig:
@@ -192,7 +192,8 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
     "cpu": model sizes for a CPU step, without measurable quality loss on D-NeRF at 400x400: hash tables of 2^16 /
     2^15 entries (Adam touches every entry every step), spatial resolution up to 1024, 64-wide layers, and 16
     instead of 32 levels on the temporal grids; on D-NeRF scenes also a schedule for a CPU's budget
-    (``CPU_DNERF_SCHEDULE``: 8000 steps, densification 300-5000, opacity reset every 2000, 20k random points). Their resolutions only grow from 8 to 32 (16 along t), so 32 levels
+    (``CPU_DNERF_SCHEDULE``: 8000 steps, densification 300-5000 up to 30k Gaussians, opacity reset every 2000, 20k
+    random points). Their resolutions only grow from 8 to 32 (16 along t), so 32 levels
     sit 4.6% apart; 16 levels (9% apart) cover the same range at half the lookups, and the temporal grids were the
     largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
     "paper": the published model sizes (the defaults) and schedule (paper Sec. 5 and supp. A, D): 50k iterations
@@ -218,7 +219,8 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
                 config,
                 optim=replace(config.optim, iterations=CPU_DNERF_SCHEDULE["iterations"]),
                 densify=replace(config.densify, start=CPU_DNERF_SCHEDULE["densify_start"], stop=CPU_DNERF_SCHEDULE["densify_stop"],
-                                opacity_reset_every=CPU_DNERF_SCHEDULE["opacity_reset_every"]),
+                                opacity_reset_every=CPU_DNERF_SCHEDULE["opacity_reset_every"],
+                                max_gaussians=CPU_DNERF_SCHEDULE["max_gaussians"]),
                 gaussians=replace(config.gaussians, random_init_points=CPU_DNERF_SCHEDULE["random_init_points"]),
             )
     elif preset == "paper":

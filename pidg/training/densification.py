@@ -80,6 +80,9 @@ class DensificationConfig:
     """Prune Gaussians whose radius exceeded this many pixels since the last densification (after the first reset)."""
     prune_world_scale: Annotated[float, POSITIVE] = 0.1
     """Prune Gaussians whose max scale exceeds this x scene extent (after the first reset; PIDG scenes: 0.015)."""
+    max_gaussians: Annotated[int, NON_NEGATIVE] = 0
+    """Densification adds Gaussians only up to this count, the highest-gradient candidates first (a CPU budget:
+    a step's cost grows with the count); 0: no limit. Pruning is unaffected."""
     seed: Annotated[int, NON_NEGATIVE] | None = 42
     """Seed of the split sampling; none = torch's global generator."""
 
@@ -255,6 +258,20 @@ def prune(gaussians: Densifiable, optimizers: OptimizerSet, state: Densification
     return n
 
 
+def within_budget(candidates: Tensor, grads: Tensor, large: Tensor, room: int, split_samples: int) -> Tensor:
+    """The densification candidates [N] bool that fit in ``room`` more Gaussians, highest gradient first: a clone
+    adds one Gaussian, a split (``large``) ``split_samples - 1``."""
+    index = candidates.nonzero().squeeze(1)
+    cost = torch.where(large[index], split_samples - 1, 1)
+    if int(cost.sum()) <= room:
+        return candidates
+    order = torch.argsort(grads[index], descending=True, stable=True)
+    fits = torch.cumsum(cost[order], 0) <= max(room, 0)
+    kept = torch.zeros_like(candidates)
+    kept[index[order[fits]]] = True
+    return kept
+
+
 def reset_opacity(gaussians: Densifiable, optimizers: OptimizerSet, value: float) -> None:
     """Clamp opacities to at most ``value`` and zero the opacity parameter's Adam moments.
 
@@ -366,6 +383,8 @@ class DensificationStrategy:
         with torch.no_grad():
             max_scale = torch.exp(gaussians.params["log_scales"]).max(dim=-1).values
         large = max_scale > c.percent_dense * self.scene_extent
+        if c.max_gaussians:
+            high = within_budget(high, grads, large, c.max_gaussians - _num_rows(gaussians), c.split_samples)
         split_mask = high & large  # decided before cloning; the clones (appended at the end) are never split
         cloned = clone(gaussians, optimizers, state, high & ~large)
         n_split = split(

@@ -42,11 +42,15 @@ from torch import Tensor
 
 from pidg.metrics import SSIM_K, SSIM_WIN_SIGMA, SSIM_WIN_SIZE
 
-_BAND = 8  # rows per band: the unit of the deterministic value sum
-_K = SSIM_WIN_SIZE  # taps; compile-time constants in the kernels, so the tap loops unroll
+_BAND = 8  # rows per band: the unit of the value's fixed-order sum
+_K = SSIM_WIN_SIZE  # taps
 _R = SSIM_WIN_SIZE // 2
-# Blur loops may contract multiply-adds into FMAs; nothing is reassociated, so each output is one fixed sequence of
-# operations (the same on every run of a build) and the loops over a row vectorise without reordering any sum.
+# Floats per row of the per-thread scratch buffers. A compile-time constant on purpose: LLVM then knows how far
+# apart the rows of a buffer are, proves the stores to its rows independent and vectorises the loops; with a row
+# length known only at run time it gave up on the runtime alias checks (scalar code, 2x slower, measured).
+_CAP = 4096
+# Contract multiply-adds into FMAs, nothing reassociated: each output is one fixed sequence of operations (the same
+# on every run of a build), and the loops over a row vectorise across elements without reordering any sum.
 _FASTMATH = {"contract", "nsz", "arcp"}
 
 
@@ -57,213 +61,272 @@ def gaussian_window_1d(size: int = SSIM_WIN_SIZE, sigma: float = SSIM_WIN_SIGMA)
 
 
 _WINDOW = gaussian_window_1d()
-_TAPS = tuple(np.float32(w) for w in _WINDOW)  # a global tuple: numba compiles it in as constants
+assert _WINDOW.shape == (11,) and np.array_equal(_WINDOW, _WINDOW[::-1]), "the kernels are written for 11 symmetric taps"
+# Globals: numba compiles them in as constants.
+_TAPS = tuple(np.float32(w) for w in _WINDOW)
+_W0, _W1, _W2, _W3, _W4, _W5 = _TAPS[:6]
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _vblur_5maps(p, g, y, vert, off):  # pragma: no cover - compiled
-    """vert[:, off + i] = the vertical blur at row y of p, g, p^2, g^2, p g (rows [H, L]); zero outside the image."""
-    height, length = p.shape
-    if _R <= y < height - _R:  # the whole window inside: unrolled taps, sums in registers
-        r0 = y - _R
-        for i in range(length):
-            s0 = s1 = s2 = s3 = s4 = np.float32(0.0)
-            for k in range(_K):
-                w = _TAPS[k]
-                a = p[r0 + k, i]
-                b = g[r0 + k, i]
-                s0 += w * a
-                s1 += w * b
-                s2 += w * (a * a)
-                s3 += w * (b * b)
-                s4 += w * (a * b)
-            vert[0, off + i] = s0
-            vert[1, off + i] = s1
-            vert[2, off + i] = s2
-            vert[3, off + i] = s3
-            vert[4, off + i] = s4
-    else:  # cut by the edge: add the taps inside the image, in the same order
-        for j in range(5):
-            for i in range(length):
-                vert[j, off + i] = np.float32(0.0)
-        for k in range(_K):
-            r = y - _R + k
-            if 0 <= r < height:
-                w = _TAPS[k]
-                for i in range(length):
-                    a = p[r, i]
-                    b = g[r, i]
-                    vert[0, off + i] += w * a
-                    vert[1, off + i] += w * b
-                    vert[2, off + i] += w * (a * a)
-                    vert[3, off + i] += w * (b * b)
-                    vert[4, off + i] += w * (a * b)
+@njit(cache=True, inline="always")
+def _u(i):  # pragma: no cover - compiled
+    """An index known to be >= 0, as unsigned: numba then emits no negative-index wraparound, whose select kept
+    LLVM from vectorising the row loops (scalar code, measured)."""
+    return np.uint64(i)
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _vblur_3maps(maps, y, out):  # pragma: no cover - compiled
-    """out[j, i] = the vertical blur at row y of maps[j] ([3, H, L]); zero outside the image."""
-    height, length = maps.shape[1], maps.shape[2]
-    if _R <= y < height - _R:
-        r0 = y - _R
-        for i in range(length):
-            s0 = s1 = s2 = np.float32(0.0)
-            for k in range(_K):
-                w = _TAPS[k]
-                s0 += w * maps[0, r0 + k, i]
-                s1 += w * maps[1, r0 + k, i]
-                s2 += w * maps[2, r0 + k, i]
-            out[0, i] = s0
-            out[1, i] = s1
-            out[2, i] = s2
-    else:
-        for j in range(3):
-            for i in range(length):
-                out[j, i] = np.float32(0.0)
-        for k in range(_K):
-            r = y - _R + k
-            if 0 <= r < height:
-                w = _TAPS[k]
-                for i in range(length):
-                    out[0, i] += w * maps[0, r, i]
-                    out[1, i] += w * maps[1, r, i]
-                    out[2, i] += w * maps[2, r, i]
+@njit(cache=True, inline="always")
+def _tap(r, height, w):  # pragma: no cover - compiled
+    """Row r of the vertical window and its weight; a row outside the image reads the nearest edge row, weight 0."""
+    if r < 0:
+        return 0, np.float32(0.0)
+    if r >= height:
+        return height - 1, np.float32(0.0)
+    return r, w
 
 
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _ssim_row(vert, n_ch, c1, c2, col, derivs, off):  # pragma: no cover - compiled
-    """Horizontal pass of one row of the five vertically blurred maps (``vert``, padded by R*C zeros; neighbours
-    are C elements apart), then SSIM per element: col[i] += s; derivs[:, off + i] = dS/dmu_p, dS/dE_pp, dS/dE_pg
-    (skipped when ``derivs`` has no rows)."""
-    length = col.shape[0]
-    if derivs.shape[0] == 0:
-        for i in range(length):
-            m0 = m1 = m2 = m3 = m4 = np.float32(0.0)
-            for k in range(_K):
-                w = _TAPS[k]
-                m0 += w * vert[0, i + k * n_ch]
-                m1 += w * vert[1, i + k * n_ch]
-                m2 += w * vert[2, i + k * n_ch]
-                m3 += w * vert[3, i + k * n_ch]
-                m4 += w * vert[4, i + k * n_ch]
-            mpg = m0 * m1
-            a1 = np.float32(2.0) * mpg + c1
-            a2 = np.float32(2.0) * (m4 - mpg) + c2
-            b1 = m0 * m0 + m1 * m1 + c1
-            b2 = (m2 - m0 * m0) + (m3 - m1 * m1) + c2
-            col[i] += (a1 * a2) / (b1 * b2)
-        return
-    for i in range(length):
-        m0 = m1 = m2 = m3 = m4 = np.float32(0.0)
-        for k in range(_K):
-            w = _TAPS[k]
-            m0 += w * vert[0, i + k * n_ch]
-            m1 += w * vert[1, i + k * n_ch]
-            m2 += w * vert[2, i + k * n_ch]
-            m3 += w * vert[3, i + k * n_ch]
-            m4 += w * vert[4, i + k * n_ch]
+@njit(cache=True, inline="always")
+def _window_rows(y, height):  # pragma: no cover - compiled
+    """The 11 rows of the vertical window at output row y and their weights (zero padding: weight 0 outside)."""
+    t0, t1, t2 = _tap(y - 5, height, _TAPS[0]), _tap(y - 4, height, _TAPS[1]), _tap(y - 3, height, _TAPS[2])
+    t3, t4, t5 = _tap(y - 2, height, _TAPS[3]), _tap(y - 1, height, _TAPS[4]), _tap(y, height, _TAPS[5])
+    t6, t7, t8 = _tap(y + 1, height, _TAPS[6]), _tap(y + 2, height, _TAPS[7]), _tap(y + 3, height, _TAPS[8])
+    t9, t10 = _tap(y + 4, height, _TAPS[9]), _tap(y + 5, height, _TAPS[10])
+    rows = (t0[0], t1[0], t2[0], t3[0], t4[0], t5[0], t6[0], t7[0], t8[0], t9[0], t10[0])
+    weights = (t0[1], t1[1], t2[1], t3[1], t4[1], t5[1], t6[1], t7[1], t8[1], t9[1], t10[1])
+    return rows, weights
+
+
+@njit(cache=True, inline="always")
+def _column(a, rows, e):  # pragma: no cover - compiled
+    """a[rows[k], e] for the 11 window rows."""
+    e = _u(e)
+    return (
+        a[rows[0], e], a[rows[1], e], a[rows[2], e], a[rows[3], e], a[rows[4], e], a[rows[5], e],
+        a[rows[6], e], a[rows[7], e], a[rows[8], e], a[rows[9], e], a[rows[10], e],
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _products(a, b):  # pragma: no cover - compiled
+    return (
+        a[0] * b[0], a[1] * b[1], a[2] * b[2], a[3] * b[3], a[4] * b[4], a[5] * b[5],
+        a[6] * b[6], a[7] * b[7], a[8] * b[8], a[9] * b[9], a[10] * b[10],
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _sum_of_squares(a, b):  # pragma: no cover - compiled
+    return (
+        a[0] * a[0] + b[0] * b[0], a[1] * a[1] + b[1] * b[1], a[2] * a[2] + b[2] * b[2], a[3] * a[3] + b[3] * b[3],
+        a[4] * a[4] + b[4] * b[4], a[5] * a[5] + b[5] * b[5], a[6] * a[6] + b[6] * b[6], a[7] * a[7] + b[7] * b[7],
+        a[8] * a[8] + b[8] * b[8], a[9] * a[9] + b[9] * b[9], a[10] * a[10] + b[10] * b[10],
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _dot(x, w):  # pragma: no cover - compiled
+    """The vertical pass of one element: sum_k w[k] x[k], in tap order."""
+    return (
+        w[0] * x[0] + w[1] * x[1] + w[2] * x[2] + w[3] * x[3] + w[4] * x[4] + w[5] * x[5]
+        + w[6] * x[6] + w[7] * x[7] + w[8] * x[8] + w[9] * x[9] + w[10] * x[10]
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _hsum(buf, j, u, step):  # pragma: no cover - compiled
+    """The horizontal pass of one element: sum_k w_k buf[j, u + k step] over a zero-padded row, the symmetric
+    taps paired (6 multiplies instead of 11)."""
+    return (
+        _W0 * (buf[j, _u(u)] + buf[j, _u(u + 10 * step)]) + _W1 * (buf[j, _u(u + step)] + buf[j, _u(u + 9 * step)])
+        + _W2 * (buf[j, _u(u + 2 * step)] + buf[j, _u(u + 8 * step)])
+        + _W3 * (buf[j, _u(u + 3 * step)] + buf[j, _u(u + 7 * step)])
+        + _W4 * (buf[j, _u(u + 4 * step)] + buf[j, _u(u + 6 * step)]) + _W5 * buf[j, _u(u + 5 * step)]
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _vertical_4maps(p, g, rows, weights, lo, hi, base, vert):  # pragma: no cover - compiled
+    """vert[:, e - base] = the vertical blur of p, g, p^2 + g^2, p g at element e of the output row, e in [lo, hi):
+    22 loads, the four sums in registers."""
+    for e in range(lo, hi):
+        a = _column(p, rows, e)
+        b = _column(g, rows, e)
+        t = _u(e - base)
+        vert[0, t] = _dot(a, weights)
+        vert[1, t] = _dot(b, weights)
+        vert[2, t] = _dot(_sum_of_squares(a, b), weights)
+        vert[3, t] = _dot(_products(a, b), weights)
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _ssim_values(vert, count, step, c1, c2, out):  # pragma: no cover - compiled
+    """out[3, u] = SSIM at u for u < count, from the horizontal pass of the four rows of ``vert``."""
+    for u in range(count):
+        m0 = _hsum(vert, 0, u, step)  # mu_p
+        m1 = _hsum(vert, 1, u, step)  # mu_g
+        mq = _hsum(vert, 2, u, step)  # E[p^2 + g^2]
+        mr = _hsum(vert, 3, u, step)  # E[p g]
         mpg = m0 * m1
+        msq = m0 * m0 + m1 * m1
         a1 = np.float32(2.0) * mpg + c1
-        a2 = np.float32(2.0) * (m4 - mpg) + c2
-        b1 = m0 * m0 + m1 * m1 + c1
-        b2 = (m2 - m0 * m0) + (m3 - m1 * m1) + c2
+        a2 = np.float32(2.0) * (mr - mpg) + c2
+        b1 = msq + c1
+        b2 = (mq - msq) + c2
+        out[3, _u(u)] = (a1 * a2) / (b1 * b2)
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _ssim_values_and_derivatives(vert, count, step, c1, c2, out):  # pragma: no cover - compiled
+    """Like _ssim_values, and out[0..2, u] = dS/dmu_p, dS/dE[p^2] (= dS/dB2), dS/dE[p g] (one division)."""
+    for u in range(count):
+        m0 = _hsum(vert, 0, u, step)  # mu_p
+        m1 = _hsum(vert, 1, u, step)  # mu_g
+        mq = _hsum(vert, 2, u, step)  # E[p^2 + g^2]
+        mr = _hsum(vert, 3, u, step)  # E[p g]
+        mpg = m0 * m1
+        msq = m0 * m0 + m1 * m1
+        a1 = np.float32(2.0) * mpg + c1
+        a2 = np.float32(2.0) * (mr - mpg) + c2
+        b1 = msq + c1
+        b2 = (mq - msq) + c2
         inv_b1b2 = np.float32(1.0) / (b1 * b2)
         inv_b1 = b2 * inv_b1b2
         inv_b2 = b1 * inv_b1b2
         s = a1 * a2 * inv_b1b2
-        col[i] += s
-        derivs[0, off + i] = np.float32(2.0) * m1 * (a2 - a1) * inv_b1b2 - np.float32(2.0) * m0 * s * (inv_b1 - inv_b2)
-        derivs[1, off + i] = -s * inv_b2
-        derivs[2, off + i] = np.float32(2.0) * a1 * inv_b1b2
-
-
-@njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _hblur_3maps(padded, n_ch, y, out):  # pragma: no cover - compiled
-    """out[j, y, i] = the horizontal blur of the padded rows ``padded[j]`` (neighbours C elements apart)."""
-    length = out.shape[2]
-    for i in range(length):
-        s0 = s1 = s2 = np.float32(0.0)
-        for k in range(_K):
-            w = _TAPS[k]
-            s0 += w * padded[0, i + k * n_ch]
-            s1 += w * padded[1, i + k * n_ch]
-            s2 += w * padded[2, i + k * n_ch]
-        out[0, y, i] = s0
-        out[1, y, i] = s1
-        out[2, y, i] = s2
+        i = _u(u)
+        out[0, i] = np.float32(2.0) * m1 * (a2 - a1) * inv_b1b2 - np.float32(2.0) * m0 * s * (inv_b1 - inv_b2)
+        out[1, i] = -s * inv_b2
+        out[2, i] = np.float32(2.0) * a1 * inv_b1b2
+        out[3, i] = s
 
 
 @njit(cache=True, inline="always")
-def _band_range(chunk, n_chunks, n_bands):  # pragma: no cover - compiled
-    return chunk * n_bands // n_chunks, (chunk + 1) * n_bands // n_chunks
+def _slots(rows):  # pragma: no cover - compiled
+    """Where the window rows live in a ring buffer of _K rows (row r in slot r % _K)."""
+    return (
+        rows[0] % _K, rows[1] % _K, rows[2] % _K, rows[3] % _K, rows[4] % _K, rows[5] % _K,
+        rows[6] % _K, rows[7] % _K, rows[8] % _K, rows[9] % _K, rows[10] % _K,
+    )  # fmt: skip
 
 
-@njit(parallel=True, cache=True, nogil=True, fastmath=_FASTMATH)
-def _ssim_forward(p, g, n_ch, c1, c2, n_threads, band_sums, dx):  # pragma: no cover - compiled
-    """p, g [H, W*C] -> band_sums [n_bands] (float64 sums of the SSIM map over each band of rows) and, unless dx
-    has no maps, dx [3, H, W*C]: the derivative maps w.r.t. mu_p, E[p^2], E[p g], already blurred horizontally."""
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _gradient_row(p, g, ring0, ring1, ring2, y, scale, grad):  # pragma: no cover - compiled
+    """grad[y] = scale * (blur(d_mu) + 2 p blur(d_q) + g blur(d_pg)) at row y: the vertical pass over the x-blurred
+    derivative maps held in the ring buffers (33 loads, three sums in registers), combined with p and g."""
+    rows, weights = _window_rows(y, p.shape[0])
+    slots = _slots(rows)
+    for e in range(p.shape[1]):
+        e0 = _dot(_column(ring0, slots, e), weights)
+        e1 = _dot(_column(ring1, slots, e), weights)
+        e2 = _dot(_column(ring2, slots, e), weights)
+        i = _u(e)
+        grad[y, i] = scale * (e0 + np.float32(2.0) * p[y, i] * e1 + g[y, i] * e2)
+
+
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _ssim_rows(p, g, n_ch, seg, c1, c2, scale, band0, band1, band_sums, grad):  # pragma: no cover - compiled
+    """Bands [band0, band1) (one thread's share of _ssim_forward): their value sums and gradient rows."""
     height, length = p.shape
-    pad = _R * n_ch
+    rc = _R * n_ch  # R pixels, in elements
+    with_grad = grad.shape[0] > 0
+    y0, y1 = band0 * _BAND, min(height, band1 * _BAND)
+    # the gradient of rows [y0, y1) needs the derivative maps of R more rows on either side
+    t0, t1 = (max(0, y0 - _R), min(height, y1 + _R)) if with_grad else (y0, y1)
+    vert = np.zeros((4, _CAP), dtype=np.float32)  # rows: p, g, p^2 + g^2, p g blurred vertically
+    out = np.zeros((4, _CAP), dtype=np.float32)  # rows: dS/dmu_p, dS/dE[p^2], dS/dE[p g], s
+    col = np.zeros(length, dtype=np.float32)
+    ring_len = length if with_grad else 0  # three arrays: LLVM can then check them for overlap (one 3-D array's
+    ring0 = np.empty((_K, ring_len), dtype=np.float32)  # rows at a run-time distance kept the loop scalar)
+    ring1 = np.empty((_K, ring_len), dtype=np.float32)
+    ring2 = np.empty((_K, ring_len), dtype=np.float32)
+    next_y = y0  # the next gradient row to emit
+    for t in range(t0, t1):
+        rows, weights = _window_rows(t, height)
+        slot = t % _K
+        for s0 in range(0, length, seg):
+            n = min(length, s0 + seg) - s0
+            # vert[:, i] is element s0 - 2rc + i, i < n + 4rc; zero outside the row
+            base = s0 - 2 * rc
+            lo, hi = max(0, base), min(length, s0 + n + 2 * rc)
+            for j in range(4):
+                for i in range(lo - base):
+                    vert[j, i] = np.float32(0.0)
+                for i in range(hi - base, n + 4 * rc):
+                    vert[j, i] = np.float32(0.0)
+            _vertical_4maps(p, g, rows, weights, lo, hi, base, vert)
+            # out[:, u] is element s0 - rc + u, u < n + 2rc: the derivative maps' halo for their horizontal blur
+            if with_grad:
+                _ssim_values_and_derivatives(vert, n + 2 * rc, n_ch, c1, c2, out)
+                for j in range(3):  # the derivative maps are zero outside the image
+                    for u in range(max(0, rc - s0)):
+                        out[j, u] = np.float32(0.0)
+                    for u in range(length - s0 + rc, n + 2 * rc):
+                        out[j, u] = np.float32(0.0)
+                for v in range(n):
+                    i = _u(s0 + v)
+                    ring0[slot, i] = _hsum(out, 0, v, n_ch)
+                    ring1[slot, i] = _hsum(out, 1, v, n_ch)
+                    ring2[slot, i] = _hsum(out, 2, v, n_ch)
+            else:
+                _ssim_values(vert, n + 2 * rc, n_ch, c1, c2, out)
+            if y0 <= t < y1:
+                for v in range(n):
+                    col[_u(s0 + v)] += out[3, _u(rc + v)]
+        if y0 <= t < y1 and (t + 1 == y1 or (t + 1) % _BAND == 0):
+            # the band's sum: four interleaved float64 partial sums, a fixed order and no long chain of adds
+            s_0 = s_1 = s_2 = s_3 = 0.0
+            n4 = length - length % 4
+            for e in range(0, n4, 4):
+                s_0 += col[e]
+                s_1 += col[e + 1]
+                s_2 += col[e + 2]
+                s_3 += col[e + 3]
+            for e in range(n4, length):
+                s_0 += col[e]
+            band_sums[t // _BAND] = (s_0 + s_1) + (s_2 + s_3)
+            for e in range(length):
+                col[e] = np.float32(0.0)
+        # emit the gradient rows whose window of derivative rows is now complete
+        while with_grad and next_y < y1 and min(next_y + _R, height - 1) <= t:
+            _gradient_row(p, g, ring0, ring1, ring2, next_y, scale, grad)
+            next_y += 1
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _ssim_forward(p, g, n_ch, seg, c1, c2, scale, n_threads, band_sums, grad):  # pragma: no cover - compiled
+    """p, g [H, W*C] -> band_sums [n_bands]: the SSIM map summed over each band of _BAND rows (float64); and, when
+    grad is [H, W*C] (not empty), grad = scale * dS/dp. Each thread takes a contiguous range of bands, and works
+    out the derivative maps of the R rows on either side of it as well (their gradient rows need them)."""
     n_bands = band_sums.shape[0]
     n_chunks = min(n_threads, n_bands)
-    n_derivs = 3 if dx.shape[0] > 0 else 0
     for chunk in prange(n_chunks):
-        vert = np.zeros((5, length + 2 * pad), dtype=np.float32)
-        derivs = np.zeros((n_derivs, length + 2 * pad), dtype=np.float32)
-        col = np.empty(length, dtype=np.float32)
-        b0, b1 = _band_range(chunk, n_chunks, n_bands)
-        for band in range(b0, b1):
-            col[:] = 0.0
-            for y in range(band * _BAND, min(height, (band + 1) * _BAND)):
-                _vblur_5maps(p, g, y, vert, pad)
-                _ssim_row(vert, n_ch, c1, c2, col, derivs, pad)
-                if n_derivs > 0:
-                    _hblur_3maps(derivs, n_ch, y, dx)
-            total = 0.0
-            for i in range(length):
-                total += col[i]
-            band_sums[band] = total
+        band0, band1 = chunk * n_bands // n_chunks, (chunk + 1) * n_bands // n_chunks
+        _ssim_rows(p, g, n_ch, seg, c1, c2, scale, band0, band1, band_sums, grad)
 
 
-@njit(parallel=True, cache=True, nogil=True, fastmath=_FASTMATH)
-def _ssim_backward(p, g, dx, scale, n_threads, grad):  # pragma: no cover - compiled
-    """grad [H, W*C] = scale * (blur(d_mu) + 2 p blur(d_pp) + g blur(d_pg)): the vertical pass over the forward's
-    x-blurred maps dx [3, H, W*C], combined with p and g in the same loop."""
-    height, length = p.shape
-    n_bands = (height + _BAND - 1) // _BAND
-    n_chunks = min(n_threads, n_bands)
-    for chunk in prange(n_chunks):
-        blurred = np.empty((3, length), dtype=np.float32)
-        b0, b1 = _band_range(chunk, n_chunks, n_bands)
-        for y in range(b0 * _BAND, min(height, b1 * _BAND)):
-            _vblur_3maps(dx, y, blurred)
-            for i in range(length):
-                grad[y, i] = scale * (blurred[0, i] + np.float32(2.0) * p[y, i] * blurred[1, i] + g[y, i] * blurred[2, i])
+@njit(cache=True, nogil=True, fastmath=_FASTMATH, error_model="numpy")
+def _blur_rows(maps, job0, job1, out):  # pragma: no cover - compiled
+    """Rows [job0, job1) of the maps [M, H, W] flattened to M*H rows: see _blur_maps."""
+    height, width = maps.shape[1], maps.shape[2]
+    row = np.zeros((1, width + 2 * _R), dtype=np.float32)
+    for job in range(job0, job1):
+        m, y = job // height, job % height
+        rows, weights = _window_rows(y, height)
+        src = maps[m]
+        for x in range(width):
+            row[0, _u(_R + x)] = _dot(_column(src, rows, x), weights)
+        for x in range(width):
+            out[m, y, _u(x)] = _hsum(row, 0, x, 1)
 
 
-@njit(parallel=True, cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(parallel=True, cache=True, nogil=True)
 def _blur_maps(maps, n_threads, out):  # pragma: no cover - compiled
-    """out = the zero-padded separable blur of maps [M, H, W]: vertical pass into a padded row, then horizontal."""
-    n_maps, height, width = maps.shape
-    n_rows = n_maps * height
+    """out = the zero-padded separable blur of maps [M, H, W], one row at a time: the vertical pass into a row
+    padded by R zeros per side, then the horizontal pass (the same helpers as the SSIM kernels)."""
+    n_rows = maps.shape[0] * maps.shape[1]
     n_chunks = min(n_threads, n_rows)
     for chunk in prange(n_chunks):
-        row = np.zeros(width + 2 * _R, dtype=np.float32)
-        for job in range(chunk * n_rows // n_chunks, (chunk + 1) * n_rows // n_chunks):
-            m, y = job // height, job % height
-            for i in range(width):
-                row[_R + i] = np.float32(0.0)
-            for k in range(_K):
-                r = y - _R + k
-                if 0 <= r < height:
-                    w = _TAPS[k]
-                    for i in range(width):
-                        row[_R + i] += w * maps[m, r, i]
-            for i in range(width):
-                s = np.float32(0.0)
-                for k in range(_K):
-                    s += _TAPS[k] * row[i + k]
-                out[m, y, i] = s
+        _blur_rows(maps, chunk * n_rows // n_chunks, (chunk + 1) * n_rows // n_chunks, out)
 
 
 def _rows(t: Tensor) -> np.ndarray:
@@ -280,6 +343,14 @@ def blur(maps: Tensor) -> Tensor:
     return torch.from_numpy(out)
 
 
+def _segment(length: int, n_ch: int) -> int:
+    """Elements per row segment: the whole row when it fits the scratch rows with its halo of 4R pixels."""
+    seg = (_CAP - 4 * _R * n_ch) // n_ch * n_ch
+    if seg < n_ch:
+        raise ValueError(f"fused_ssim: at most {_CAP // (4 * _R + 1)} channels, got {n_ch}")
+    return max(1, min(length, seg))
+
+
 class _FusedSSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx, pred: Tensor, gt: Tensor) -> Tensor:  # type: ignore[override]
@@ -287,21 +358,17 @@ class _FusedSSIM(torch.autograd.Function):
         n_ch = pred.shape[2]
         band_sums = np.empty((p.shape[0] + _BAND - 1) // _BAND, dtype=np.float64)
         need_grad = ctx.needs_input_grad[0]
-        dx = np.empty((3 if need_grad else 0, *p.shape), dtype=np.float32)
+        grad = np.empty(p.shape if need_grad else (0, 0), dtype=np.float32)
         c1, c2 = np.float32(SSIM_K[0] ** 2), np.float32(SSIM_K[1] ** 2)
-        _ssim_forward(p, g, n_ch, c1, c2, numba.get_num_threads(), band_sums, dx)
-        if need_grad:
-            ctx.save_for_backward(pred, gt)  # (re-read in backward: a view costs nothing, and autograd checks versions)
-            ctx.dx = dx
+        scale = np.float32(1.0 / max(p.size, 1))
+        _ssim_forward(p, g, n_ch, _segment(p.shape[1], n_ch), c1, c2, scale, numba.get_num_threads(), band_sums, grad)
+        if need_grad:  # d(mean SSIM)/d pred, made with the value: the backward only scales it
+            ctx.grad = torch.from_numpy(grad).view(pred.shape)
         return torch.tensor(band_sums.sum() / p.size, dtype=pred.dtype)
 
     @staticmethod
-    def backward(ctx, grad: Tensor):  # type: ignore[override]
-        pred, gt = ctx.saved_tensors
-        p, g = _rows(pred), _rows(gt)
-        out = np.empty_like(p)
-        _ssim_backward(p, g, ctx.dx, np.float32(float(grad) / p.size), numba.get_num_threads(), out)
-        return torch.from_numpy(out).view(pred.shape).to(pred.dtype), None
+    def backward(ctx, grad_out: Tensor):  # type: ignore[override]
+        return (ctx.grad * grad_out).to(grad_out.dtype), None
 
 
 def fused_ssim(pred: Tensor, gt: Tensor) -> Tensor:

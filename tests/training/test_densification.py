@@ -365,3 +365,30 @@ def test_end_to_end_render_backward_densify_render():
     assert torch.isfinite(out.rgb).all() and out.means2d.shape == (len(model), 2)
     out.rgb.mean().backward()
     assert model.params["means"].grad is not None
+
+
+def test_a_gaussian_budget_keeps_the_highest_gradient_candidates():
+    from pidg.training.densification import within_budget
+
+    grads = torch.tensor([5.0, 4.0, 3.0, 2.0, 1.0, 9.0])
+    candidates = torch.tensor([True, True, True, True, True, False])
+    large = torch.tensor([False, True, False, True, False, False])  # splits cost split_samples - 1 = 2
+    assert torch.equal(within_budget(candidates, grads, large, room=10, split_samples=3), candidates)  # 1+2+1+2+1 fits
+    # room 4: 5.0 (clone, 1) and 4.0 (split, 2) fit, 3.0 (clone) makes 4, 2.0 (split) would make 6
+    assert within_budget(candidates, grads, large, room=4, split_samples=3).tolist() == [True, True, True, False, False, False]
+    assert not within_budget(candidates, grads, large, room=0, split_samples=3).any()
+    assert not within_budget(candidates, grads, large, room=-5, split_samples=3).any()  # over budget already
+
+
+def test_densification_stops_growing_at_the_budget():
+    model = make_model(5, scale=0.05)
+    with torch.no_grad():
+        model.params["log_scales"][:] = math.log(0.005)  # all small: clones
+    opts = make_gaussian_optimizers(model)
+    strategy, state = strategy_and_state(model, config=DensificationConfig(max_gaussians=7))
+    grad = torch.tensor([[1e-5, 0.0], [2e-5, 0.0], [3e-5, 0.0], [4e-5, 0.0], [5e-5, 0.0]])  # all above threshold
+    radii = torch.full((5, 2), 3)
+    strategy.step_pre_backward(fake_render(5, grad, radii, 200, 100))
+    report = strategy.step_post_backward(model, opts, state, 600, fake_render(5, grad, radii, 200, 100))
+    assert report is not None and report.cloned == 2 and len(model) == 7
+    assert sorted(model.particle_index.tolist()[5:]) == [3, 4]  # the two steepest were cloned
