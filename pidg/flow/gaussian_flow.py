@@ -102,12 +102,13 @@ def decode_flows(
     if features.dim() != 3 or tuple(features.shape[:2]) != (h, w) or features.shape[-1] not in (6, 8):
         raise ValueError(f"features must be [H, W, 6 or 8] = [{h}, {w}, 8], got {list(features.shape)}")
     p = pixel_centers(h, w, features.dtype, features.device)
-    m = features[..., :4].reshape(h, w, 2, 2)
+    m, b_g, b_v = features.split([4, 2, features.shape[-1] - 6], dim=-1)  # split: one backward, not three zero-fills
+    m = m.reshape(h, w, 2, 2)
     mp = (m @ p.unsqueeze(-1)).squeeze(-1)
     valid = alpha > min_alpha
     inv_alpha = torch.where(valid, 1.0 / alpha.clamp_min(min_alpha), torch.zeros_like(alpha)).unsqueeze(-1)
-    flow_g = (mp + features[..., 4:6]) * inv_alpha
-    flow_v = (mp + features[..., 6:8]) * inv_alpha if features.shape[-1] == 8 else None
+    flow_g = (mp + b_g) * inv_alpha
+    flow_v = (mp + b_v) * inv_alpha if features.shape[-1] == 8 else None
     return flow_g, flow_v, valid
 
 

@@ -156,10 +156,10 @@ class Trainer:
             out = model.render_state(state, frame.camera, torch.cat(channels, dim=-1) if channels else None)
         loss: Tensor | None = None
         parts: dict[str, float] = {}
+        features = _split_features(out.features, slices)
         for term in terms:
             with timer.phase(term.phase):
-                columns = slices.get(term.name)
-                value, scalars = term.loss(inputs, out, None if columns is None else out.features[..., columns])
+                value, scalars = term.loss(inputs, out, features.get(term.name))
                 loss = value if loss is None else loss + value
                 parts.update(scalars)
         assert loss is not None  # the photometric term is always active
@@ -424,6 +424,16 @@ class Trainer:
         trainer._load_optimization_state(state)
         trainer.last_good_step = trainer.step  # this run's own checkpoint: where a failure rolls back to
         return trainer
+
+
+def _split_features(features: Tensor | None, slices: dict[str, slice]) -> dict[str, Tensor]:
+    """Each term's columns of the rendered features, by one ``split`` (slicing each out would fill a zero gradient of
+    the whole feature image per term in the backward)."""
+    if features is None or not slices:
+        return {}
+    names = sorted(slices, key=lambda name: slices[name].start)
+    sizes = [slices[name].stop - slices[name].start for name in names]
+    return dict(zip(names, features.split(sizes, dim=-1)))
 
 
 def _check_finite(what: str, named: list[tuple[str, Tensor]], step: int, grads: bool = False) -> None:
