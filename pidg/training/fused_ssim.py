@@ -9,26 +9,44 @@ gradient w.r.t. the prediction is three more blurs of closed-form maps:
   dS/dp = blur(dS/dmu_p) + 2 p blur(dS/dE_pp) + g blur(dS/dE_pg)      (the zero-padded blur is self-adjoint)
   dS/dmu_p = 2 mu_g (A2 - A1) / (B1 B2) - 2 mu_p s (1/B1 - 1/B2),  dS/dE_pp = -s / B2,  dS/dE_pg = 2 A1 / (B1 B2).
 
-Layout: the kernels read the [H, W, C] images in place as rows of W*C floats (channels interleaved), so no
-transposed copy is made: the vertical pass is the same for every element of a row, and the horizontal pass takes
-its taps C elements apart. The blur is separable, so its two passes can run in either order; here the vertical
-pass runs first, on whole rows:
+B2 only needs var_p + var_g = blur(p^2 + g^2) - mu_p^2 - mu_g^2, so four maps are blurred: p, g, q = p^2 + g^2 and
+p g (dS/dE_pp above is dS/dE_q: dq/dp = 2p as well).
 
-* forward, one image row at a time: the vertical pass forms p, g, p^2, g^2, p g from the 11 input rows around it
-  and keeps the five sums in registers (the tap loop is unrolled, the loop over the row vectorises), writing one
-  row per map into a buffer with 5*C zeros on both sides; the horizontal pass over those rows has fixed bounds, so
-  it vectorises too, and evaluates s and the three derivative maps in the same loop. The derivative maps' own
-  horizontal blur (the first half of the backward's blurs) follows at once, while the row is in cache, so the
-  forward stores the three x-blurred derivative maps and no unblurred one.
-* backward: only the vertical pass of those three maps is left, again 11 rows in registers, combined with p and
-  g in the same loop.
+Structure. The [H, W, C] images are read in place as rows of W*C floats (channels interleaved, no transposed
+copy). The blur is separable and its passes commute, so the vertical pass runs first, on whole rows (every element
+of a row is independent and the loads are contiguous), then the horizontal one with its taps C elements apart.
+One kernel makes the value and the gradient in a single sweep down the image; at each row t it does:
 
-Rows near the top and bottom edge, whose window is cut by the zero padding, take a slower loop that only adds
-the taps inside the image (the same sums in the same order). Only a few small per-thread row buffers are
-allocated; no full-image temporary except the x-blurred derivative maps the backward needs. Work is split into
-bands of ``_BAND`` rows, a contiguous range of bands per thread; each band sums its SSIM values (per column in
-float32, then the band in float64) into its own slot, and the slots are summed in a fixed order, so the value
-does not depend on the number of threads and every output is the same bit for bit from run to run.
+1. the vertical pass of the four maps: the 11 input rows around t are loaded into registers and the four sums
+   formed there (22 loads and 67 multiply-adds per element, the symmetric taps paired), into a row buffer with
+   2R zero pixels on each side;
+2. the horizontal pass and the SSIM formula: s (summed into the value) and the three derivative maps;
+3. the horizontal blur of the derivative maps, into ring buffers holding the last 11 rows;
+4. as soon as the rings hold the rows y - R .. y + R of some row y: the vertical blur of the three maps at y,
+   combined with p and g, which is the gradient row y.
+
+So the forward returns the value and has dS/dp ready (the backward only multiplies it by the incoming gradient),
+and nothing image-sized is written but that gradient: the working set per thread is a few rows. When no gradient
+is needed (``torch.no_grad``, or ``pred`` not requiring one) steps 3-4 and the derivative maps are skipped.
+
+Why this shape (each measured): the loops over a row vectorise (AVX2 FMA) only if (a) indices are unsigned, as
+numba's negative-index wraparound kept LLVM from vectorising, (b) ``error_model="numpy"``, as the python model's
+zero-division check in the SSIM formula did too, (c) a loop stores to rows of one buffer at a compile-time
+distance (``_CAP``) or to separate arrays: rows at a run-time distance made LLVM give up on its overlap checks.
+(b) kept the previous version's SSIM formula loop scalar, (a) and (c) drafts of these kernels. The single sweep
+also keeps the working set in cache: the previous version (and a draft of this one) wrote three image-sized
+derivative maps in the forward and read them back in the backward, and in the draft that traffic, not the
+arithmetic, set the backward's time (0.8 ms at 400x400x3 for ~0.35 ms of FMAs).
+
+Details. Rows whose window is cut by the image edge read the nearest edge row (which the window covers anyway)
+with weight 0, so one loop serves every row; rows with the whole window inside take constant taps. A row wider
+than a scratch row (``_CAP``) is done in segments, each with a halo of 2R pixels: R for the SSIM's horizontal
+blur, R for the derivative maps'. Work is split into bands of ``_BAND`` rows, a contiguous range of bands per
+thread; a thread also works out the derivative maps of the R rows on either side of its range (their gradient
+rows need them; the same operations as the neighbour's, hence the same bits). Each band sums its SSIM values (per
+column in float32, then the band in float64) into its own slot and the slots are summed in a fixed order. Only
+multiply-add contraction is allowed (no reassociation), so value and gradient do not depend on the number of
+threads and are the same bit for bit from run to run.
 
 ``pidg.metrics.ssim(..., padding="zeros")`` is the readable autograd reference the tests compare with.
 """
@@ -43,6 +61,7 @@ from torch import Tensor
 from pidg.metrics import SSIM_K, SSIM_WIN_SIGMA, SSIM_WIN_SIZE
 
 _BAND = 8  # rows per band: the unit of the value's fixed-order sum
+_MIN_BANDS = 4  # bands per thread at least: a thread also works out R rows on either side of its share
 _K = SSIM_WIN_SIZE  # taps
 _R = SSIM_WIN_SIZE // 2
 # Floats per row of the per-thread scratch buffers. A compile-time constant on purpose: LLVM then knows how far
@@ -145,17 +164,61 @@ def _hsum(buf, j, u, step):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
-def _vertical_4maps(p, g, rows, weights, lo, hi, base, vert):  # pragma: no cover - compiled
-    """vert[:, e - base] = the vertical blur of p, g, p^2 + g^2, p g at element e of the output row, e in [lo, hi):
-    22 loads, the four sums in registers."""
-    for e in range(lo, hi):
-        a = _column(p, rows, e)
-        b = _column(g, rows, e)
-        t = _u(e - base)
-        vert[0, t] = _dot(a, weights)
-        vert[1, t] = _dot(b, weights)
-        vert[2, t] = _dot(_sum_of_squares(a, b), weights)
-        vert[3, t] = _dot(_products(a, b), weights)
+def _symmetric(x):  # pragma: no cover - compiled
+    """sum_k w_k x[k] with the constant taps, symmetric ones paired."""
+    return (
+        _W0 * (x[0] + x[10]) + _W1 * (x[1] + x[9]) + _W2 * (x[2] + x[8]) + _W3 * (x[3] + x[7])
+        + _W4 * (x[4] + x[6]) + _W5 * x[5]
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _symmetric_sum_of_squares(a, b):  # pragma: no cover - compiled
+    """sum_k w_k (a[k]^2 + b[k]^2), symmetric taps paired: 4 multiply-adds per pair, then 6 for the taps."""
+    return (
+        _W0 * (((b[0] * b[0] + a[0] * a[0]) + a[10] * a[10]) + b[10] * b[10])
+        + _W1 * (((b[1] * b[1] + a[1] * a[1]) + a[9] * a[9]) + b[9] * b[9])
+        + _W2 * (((b[2] * b[2] + a[2] * a[2]) + a[8] * a[8]) + b[8] * b[8])
+        + _W3 * (((b[3] * b[3] + a[3] * a[3]) + a[7] * a[7]) + b[7] * b[7])
+        + _W4 * (((b[4] * b[4] + a[4] * a[4]) + a[6] * a[6]) + b[6] * b[6])
+        + _W5 * (b[5] * b[5] + a[5] * a[5])
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _symmetric_products(a, b):  # pragma: no cover - compiled
+    """sum_k w_k a[k] b[k], symmetric taps paired."""
+    return (
+        _W0 * (a[0] * b[0] + a[10] * b[10]) + _W1 * (a[1] * b[1] + a[9] * b[9]) + _W2 * (a[2] * b[2] + a[8] * b[8])
+        + _W3 * (a[3] * b[3] + a[7] * b[7]) + _W4 * (a[4] * b[4] + a[6] * b[6]) + _W5 * (a[5] * b[5])
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _vertical_4maps(p, g, t, lo, hi, base, vert):  # pragma: no cover - compiled
+    """vert[:, e - base] = the vertical blur of p, g, p^2 + g^2, p g at element e of row t, e in [lo, hi): 22 loads,
+    the four sums in registers. Rows whose window lies inside the image take the constant taps, symmetric ones
+    paired (67 multiplies and adds per element instead of 77, and no registers held by the weights); the others
+    take the window's rows with weight 0 outside the image."""
+    rows, weights = _window_rows(t, p.shape[0])
+    if weights[0] != 0.0 and weights[10] != 0.0:
+        for e in range(lo, hi):
+            a = _column(p, rows, e)
+            b = _column(g, rows, e)
+            i = _u(e - base)
+            vert[0, i] = _symmetric(a)
+            vert[1, i] = _symmetric(b)
+            vert[2, i] = _symmetric_sum_of_squares(a, b)
+            vert[3, i] = _symmetric_products(a, b)
+    else:
+        for e in range(lo, hi):
+            a = _column(p, rows, e)
+            b = _column(g, rows, e)
+            i = _u(e - base)
+            vert[0, i] = _dot(a, weights)
+            vert[1, i] = _dot(b, weights)
+            vert[2, i] = _dot(_sum_of_squares(a, b), weights)
+            vert[3, i] = _dot(_products(a, b), weights)
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
@@ -172,7 +235,7 @@ def _ssim_values(vert, count, step, c1, c2, out):  # pragma: no cover - compiled
         a2 = np.float32(2.0) * (mr - mpg) + c2
         b1 = msq + c1
         b2 = (mq - msq) + c2
-        out[3, _u(u)] = (a1 * a2) / (b1 * b2)
+        out[3, _u(u)] = a1 * a2 * (np.float32(1.0) / (b1 * b2))  # as below: the same bits with or without them
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
@@ -232,8 +295,9 @@ def _ssim_rows(p, g, n_ch, seg, c1, c2, scale, band0, band1, band_sums, grad):  
     y0, y1 = band0 * _BAND, min(height, band1 * _BAND)
     # the gradient of rows [y0, y1) needs the derivative maps of R more rows on either side
     t0, t1 = (max(0, y0 - _R), min(height, y1 + _R)) if with_grad else (y0, y1)
-    vert = np.zeros((4, _CAP), dtype=np.float32)  # rows: p, g, p^2 + g^2, p g blurred vertically
-    out = np.zeros((4, _CAP), dtype=np.float32)  # rows: dS/dmu_p, dS/dE[p^2], dS/dE[p g], s
+    # (every element of these that a loop reads has been written before, halo zeros included)
+    vert = np.empty((4, _CAP), dtype=np.float32)  # rows: p, g, p^2 + g^2, p g blurred vertically
+    out = np.empty((4, _CAP), dtype=np.float32)  # rows: dS/dmu_p, dS/dE[p^2], dS/dE[p g], s
     col = np.zeros(length, dtype=np.float32)
     ring_len = length if with_grad else 0  # three arrays: LLVM can then check them for overlap (one 3-D array's
     ring0 = np.empty((_K, ring_len), dtype=np.float32)  # rows at a run-time distance kept the loop scalar)
@@ -241,7 +305,6 @@ def _ssim_rows(p, g, n_ch, seg, c1, c2, scale, band0, band1, band_sums, grad):  
     ring2 = np.empty((_K, ring_len), dtype=np.float32)
     next_y = y0  # the next gradient row to emit
     for t in range(t0, t1):
-        rows, weights = _window_rows(t, height)
         slot = t % _K
         for s0 in range(0, length, seg):
             n = min(length, s0 + seg) - s0
@@ -253,7 +316,7 @@ def _ssim_rows(p, g, n_ch, seg, c1, c2, scale, band0, band1, band_sums, grad):  
                     vert[j, i] = np.float32(0.0)
                 for i in range(hi - base, n + 4 * rc):
                     vert[j, i] = np.float32(0.0)
-            _vertical_4maps(p, g, rows, weights, lo, hi, base, vert)
+            _vertical_4maps(p, g, t, lo, hi, base, vert)
             # out[:, u] is element s0 - rc + u, u < n + 2rc: the derivative maps' halo for their horizontal blur
             if with_grad:
                 _ssim_values_and_derivatives(vert, n + 2 * rc, n_ch, c1, c2, out)
@@ -298,7 +361,7 @@ def _ssim_forward(p, g, n_ch, seg, c1, c2, scale, n_threads, band_sums, grad):  
     grad is [H, W*C] (not empty), grad = scale * dS/dp. Each thread takes a contiguous range of bands, and works
     out the derivative maps of the R rows on either side of it as well (their gradient rows need them)."""
     n_bands = band_sums.shape[0]
-    n_chunks = min(n_threads, n_bands)
+    n_chunks = max(1, min(n_threads, n_bands // _MIN_BANDS))
     for chunk in prange(n_chunks):
         band0, band1 = chunk * n_bands // n_chunks, (chunk + 1) * n_bands // n_chunks
         _ssim_rows(p, g, n_ch, seg, c1, c2, scale, band0, band1, band_sums, grad)
@@ -362,19 +425,22 @@ class _FusedSSIM(torch.autograd.Function):
         c1, c2 = np.float32(SSIM_K[0] ** 2), np.float32(SSIM_K[1] ** 2)
         scale = np.float32(1.0 / max(p.size, 1))
         _ssim_forward(p, g, n_ch, _segment(p.shape[1], n_ch), c1, c2, scale, numba.get_num_threads(), band_sums, grad)
-        if need_grad:  # d(mean SSIM)/d pred, made with the value: the backward only scales it
-            ctx.grad = torch.from_numpy(grad).view(pred.shape)
+        # d(mean SSIM)/d pred, made with the value: the backward only scales it
+        ctx.grad = torch.from_numpy(grad).view(pred.shape) if need_grad else None
         return torch.tensor(band_sums.sum() / p.size, dtype=pred.dtype)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
+        if ctx.grad is None:
+            return None, None
         return (ctx.grad * grad_out).to(grad_out.dtype), None
 
 
 def fused_ssim(pred: Tensor, gt: Tensor) -> Tensor:
     """Mean zero-padded SSIM of ``pred`` vs ``gt`` (one [H, W, C] image each, same shape), float32.
 
-    Differentiable in ``pred`` only (the ground truth is data). CPU tensors; the value equals
+    Differentiable in ``pred`` only (the ground truth is data); the gradient is made with the value when ``pred``
+    requires one. CPU tensors, any size and up to 195 channels; the value equals
     ``metrics.ssim(pred, gt, padding="zeros")`` up to float32 rounding.
     """
     if pred.shape != gt.shape:
