@@ -80,7 +80,7 @@ def gaussian_window_1d(size: int = SSIM_WIN_SIZE, sigma: float = SSIM_WIN_SIGMA)
 
 
 _WINDOW = gaussian_window_1d()
-assert _WINDOW.shape == (11,) and np.array_equal(_WINDOW, _WINDOW[::-1]), "the kernels are written for 11 symmetric taps"
+assert _WINDOW.shape == (11,) and np.array_equal(_WINDOW, _WINDOW[::-1])  # the kernels' taps are written out
 # Globals: numba compiles them in as constants.
 _TAPS = tuple(np.float32(w) for w in _WINDOW)
 _W0, _W1, _W2, _W3, _W4, _W5 = _TAPS[:6]
