@@ -258,8 +258,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             summary = (inspect.getdoc(owner) or "").split("\n\n")[0].replace("\n", " ") if section else ""
             groups[section] = parser.add_argument_group(title, summary or None)
         doc = field_docs(owner).get(f.name, "")
+        # several values as separate words (``--data.splits train val test``) or one (``train,val,test``)
+        several = get_origin(_strip_optional(tp)[0]) in (tuple, list)
         groups[section].add_argument(
-            f"--{name}", dest=f"cfg::{name}", default=_MISSING, metavar=_metavar(tp),
+            f"--{name}", dest=f"cfg::{name}", default=_MISSING, metavar=_metavar(tp), nargs="+" if several else None,
             help=f"{doc} ({_default_text(f, owner)})".strip().replace("%", "%%"),
         )
 
@@ -285,7 +287,10 @@ def unbounded_numeric_options(cls: type) -> list[str]:
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, str]:
     """The ``--a.b VALUE`` options the user actually gave."""
-    return {k[len("cfg::"):]: v for k, v in vars(args).items() if k.startswith("cfg::") and v is not _MISSING}
+    return {
+        k[len("cfg::"):]: " ".join(v) if isinstance(v, list) else v
+        for k, v in vars(args).items() if k.startswith("cfg::") and v is not _MISSING
+    }
 
 
 def apply_overrides(config: T, overrides: dict[str, str]) -> T:

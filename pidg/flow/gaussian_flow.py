@@ -25,7 +25,7 @@ from torch import Tensor
 
 from pidg.flow.optical_flow import pixel_centers
 from pidg.render.camera import Camera
-from pidg.render.api import project
+from pidg.render.api import RenderBackend, project
 from pidg.render.projection import Projection
 
 FLOW_CHANNELS = 8  # with the velocity flow; 6 without
@@ -129,17 +129,18 @@ def gaussian_flow_features(
     velocities: Tensor | None = None,
     dt: float = 0.0,
     camera_t1: Camera | None = None,
+    backend: RenderBackend = "auto",
 ) -> Tensor:
     """Feature channels [N, 8] (or [N, 6] without velocities) for ``rasterize(..., features=)`` at time t.
 
     Projects the Gaussians at t with camera t -- the same projection rasterize does for the image -- and those at t+1
     (and x_t + v dt) with ``camera_t1``: None (camera t) gives the motion flow, in which camera motion cancels; frame
     t+1's camera gives the total flow, the optical flow the model predicts. Gaussians whose t+1 (or advected) centre
-    is not in front of that camera are dropped.
+    is not in front of that camera are dropped. ``backend``: the render's (which projection implementation).
     """
     later = camera_t if camera_t1 is None else camera_t1
-    proj_t = project(means_t, quats_t, scales_t, opacities, camera_t)
-    proj_t1 = project(means_t1, quats_t1, scales_t1, opacities, later)
+    proj_t = project(means_t, quats_t, scales_t, opacities, camera_t, backend)
+    proj_t1 = project(means_t1, quats_t1, scales_t1, opacities, later, backend)
     valid = proj_t1.depths.detach() > later.near
     means2d_velocity = None
     if velocities is not None:

@@ -32,6 +32,7 @@ def flow_channels(
     return gaussian_flow_features(
         camera, state_t.means, state_t.quats, state_t.log_scales.exp(), model.gaussians.opacities,
         state_t1.means, state_t1.quats, state_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
+        model.backend,
     )
 
 
@@ -62,7 +63,7 @@ def supervised_flow_channels(
     channels = FLOW_CHANNELS if model.material_field is not None else FLOW_CHANNELS - 2
     with torch.no_grad():
         g = model.gaussians
-        proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera)
+        proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera, model.backend)
         rows = footprints_touching(proj.means2d, proj.radii, supervised.to(proj.means2d.device)).nonzero().squeeze(1)
     out = state_t.means.new_zeros(n, channels)
     if rows.numel() == 0:
@@ -77,6 +78,7 @@ def supervised_flow_channels(
     sub = gaussian_flow_features(
         camera, sub_t.means, sub_t.quats, sub_t.log_scales.exp(), model.gaussians.opacities[rows],
         sub_t1.means, sub_t1.quats, sub_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
+        model.backend,
     )
     return out.index_copy(0, rows, sub.to(out.dtype))
 

@@ -88,10 +88,13 @@ def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cp
     return backend  # type: ignore[return-value]
 
 
-def project(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> Projection:
-    """The projection ``rasterize`` uses (``project_gaussians``; the numba kernel for float32 CPU tensors), for
-    callers that need screen-space Gaussians of their own (Gaussian flow, footprints)."""
-    if means.device.type == "cpu" and means.dtype == torch.float32:
+def project(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera, backend: RenderBackend = "auto"
+) -> Projection:
+    """The projection ``rasterize`` uses with the same ``backend`` (``project_gaussians``; the numba kernel for float32
+    tensors on the cpu backend), for callers that need screen-space Gaussians of their own (Gaussian flow,
+    footprints)."""
+    if resolve_backend(backend, means.device) == "cpu" and means.dtype == torch.float32:
         return project_and_shade_cpu(means, quats, scales, opacities, means.new_zeros(means.shape[0], 3), camera, None)[0]
     return project_gaussians(means, quats, scales, opacities, camera)
 

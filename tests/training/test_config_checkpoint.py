@@ -46,6 +46,22 @@ def test_cli_overrides_and_json_round_trip(tmp_path):
     assert load_config(Outer, tmp_path / "c.json") == cfg
 
 
+def test_several_values_are_separate_words_or_one_comma_separated_word():
+    """``--data.splits train val test`` (as the help's defaults print them) and ``train,val,test`` mean the same; a
+    single-valued option still takes one word."""
+    from pidg.training.config import TrainConfig
+
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser, TrainConfig)
+    spaced = parser.parse_args(["--data.splits", "train", "val", "test", "--gaussian_optim.betas", "0.8", "0.99"])
+    commas = parser.parse_args(["--data.splits", "train,val,test", "--gaussian_optim.betas", "0.8,0.99"])
+    for args in (spaced, commas):
+        cfg = apply_overrides(TrainConfig(), overrides_from_args(args))
+        assert cfg.data.splits == ("train", "val", "test") and cfg.gaussian_optim.betas == (0.8, 0.99)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--optim.iterations", "5", "6"])
+
+
 def test_sizes_parse_with_x_but_names_keep_it():
     @dataclass
     class Names:

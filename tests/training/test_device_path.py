@@ -11,6 +11,7 @@ import torch
 
 import pidg.device
 import pidg.models.deformation.hash_grid as hash_grid_module
+import pidg.models.deformation.warp as warp_module
 import pidg.render.api as render_api
 import pidg.training.losses as losses_module
 from pidg.cli import main
@@ -45,7 +46,9 @@ def test_the_cuda_path_trains_and_resumes_without_any_cpu_kernel(tmp_path, monke
         raise AssertionError("the device-agnostic path called a numba kernel")
 
     monkeypatch.setattr(render_api, "composite_cpu", cpu_kernel)
+    monkeypatch.setattr(render_api, "project_and_shade_cpu", cpu_kernel)
     monkeypatch.setattr(hash_grid_module, "hash_encode_cpu", cpu_kernel)
+    monkeypatch.setattr(warp_module, "apply_warp_cpu", cpu_kernel)
     monkeypatch.setattr(losses_module, "fused_ssim", cpu_kernel)
     full = Trainer(device_agnostic_config(tmp_path / "full", 8), scene)
     summary = full.train()

@@ -21,7 +21,8 @@ of rigid motions, but a small rotation no longer moves far-from-origin scenes by
 cancel. The warp rotates the Gaussian's orientation too (a rigidly moving neighbourhood rotates its covariance);
 Grid4D's code only adds dr. All decoder output layers start at zero, so the initial deformation is exactly the
 identity; consequently the first backward pass only reaches the output layers, and everything else starts
-receiving gradients once they have moved away from zero (one optimiser step).
+receiving gradients once they have moved away from zero (one optimiser step). The warp itself is ``warp.py``'s (a
+numba kernel on the CPU, its torch reference elsewhere).
 
 Regulariser (Grid4D): on a random ``reg_fraction`` of the points of a forward pass called with ``regularize=True``,
 perturb the grid coordinates by uniform noise and penalise the squared change of the spatial and temporal grid
@@ -51,9 +52,6 @@ from pidg.models.deformation.base import (
     DeformationModel,
     DeformedGaussians,
     NormalizedPositions,
-    quat_multiply,
-    quat_rotate,
-    unit_quat_from_delta,
 )
 from pidg.models.deformation.hash_grid import (
     GRID4D_SPATIAL,
@@ -62,6 +60,7 @@ from pidg.models.deformation.hash_grid import (
     HashGrid,
     HashGridConfig,
 )
+from pidg.models.deformation.warp import apply_warp
 
 
 @dataclass
@@ -101,7 +100,8 @@ class Grid4DConfig:
     reg_temporal_weight: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the temporal grids' smoothness term."""
     backend: HashGridBackend = "auto"
-    """Hash-encoding implementation: numba kernel on CPU tensors, the torch reference otherwise (CUDA)."""
+    """Implementation of the hash encoding and of the warp (``warp.py``): numba kernels on float32 CPU tensors, the
+    torch references otherwise (CUDA); cpu or torch force one."""
 
     def __post_init__(self) -> None:
         validate_config(self)
@@ -189,26 +189,19 @@ class Grid4D(DeformationModel):
             a = self._cached_attention(u_xyz)
             temporal = self.encode_temporal(u_xyz, u_t)
         h = self.decoder(a * self.temporal_mlp(temporal))
-        warp, rotation, scale = self._heads(h)
-        q_warp = unit_quat_from_delta(warp[:, :4])
-        translation = warp[:, 4:] * self.normalize.half_extent.to(dtype)
-        offset = means.to(dtype) - self.normalize.centre.to(dtype)
-        # mu + (R v - v) + T rather than c + R v + T: exactly mu when R = I and T = 0
-        new_means = means.to(dtype) + (quat_rotate(q_warp, offset) - offset) + translation
-        new_quats = quat_multiply(unit_quat_from_delta(rotation), quats.to(dtype))
-        if self.config.rotate_with_warp:
-            new_quats = quat_multiply(q_warp, new_quats)
-        new_log_scales = log_scales.to(dtype) + scale
+        new_means, new_quats, new_log_scales = apply_warp(
+            means.to(dtype), quats.to(dtype), log_scales.to(dtype), self._heads(h), self.normalize.centre.to(dtype),
+            self.normalize.half_extent.to(dtype), self.config.rotate_with_warp, self.config.backend,
+        )
         return DeformedGaussians(
             new_means.to(means.dtype), new_quats.to(quats.dtype), new_log_scales.to(log_scales.dtype), regularization
         )
 
-    def _heads(self, h: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(warp [N, 7], dr [N, 4], ds [N, 3]): the three heads as one matrix product (a third of the launches
-        and of the backward's passes over h)."""
+    def _heads(self, h: Tensor) -> Tensor:
+        """The warp (w, T), dr and ds heads' outputs [N, 14] (``warp.WARP_COLUMNS``) as one matrix product (a third
+        of the launches and of the backward's passes over h)."""
         heads = (self.head_warp, self.head_rotation, self.head_scale)
-        out = F.linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
-        return out.split([m.out_features for m in heads], dim=-1)  # type: ignore[return-value]
+        return F.linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
 
     # -- regulariser --------------------------------------------------------------------------------------------
 
