@@ -94,6 +94,10 @@ class LossTerm:
         """Whether the term takes part in this step."""
         return True
 
+    def prepare(self, inputs: StepInputs) -> None:
+        """Work before the render that the term caches across steps (the flow term's target); the trainer times it
+        as its own phase, ``{phase}_target``, so a benchmark shows what a cache refresh costs."""
+
     def render_features(self, inputs: StepInputs) -> Tensor | None:
         """Extra per-Gaussian channels [N, C] the term needs composited in the step's render (None: none)."""
         return None
@@ -200,30 +204,33 @@ class FlowMatchingLoss(LossTerm):
         self.config = config
         self.cache = cache
         self._targets: dict[str, _CachedTarget] = {}  # pair's first frame name -> flow_gt and what it came from
-        self._pending: FlowTarget | None = None  # this step's target
+        self._pending: tuple[FlowPair, FlowTarget] | None = None  # this step's pair and target
 
     def active(self, step: int) -> bool:
         return self.config.active(step)
 
-    def render_features(self, inputs: StepInputs) -> Tensor | None:
+    def prepare(self, inputs: StepInputs) -> None:
         self._pending = None
         pair = self.cache.pair_starting_at(inputs.frame)
         if pair is None:
+            return
+        target = self.target(inputs.model, pair, inputs.step, inputs.deforming)
+        if bool(target.valid.any()):
+            self._pending = (pair, target)
+
+    def render_features(self, inputs: StepInputs) -> Tensor | None:
+        if self._pending is None:
             return None
-        model = inputs.model
-        target = self.target(model, pair, inputs.step, inputs.deforming)
-        if not bool(target.valid.any()):
-            return None
-        self._pending = target
+        pair, target = self._pending
         return supervised_flow_channels(
-            model, inputs.frame.camera, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
+            inputs.model, inputs.frame.camera, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
             inputs.deforming, flow_camera_t1(pair, self.config),
         )
 
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
         if self._pending is None or features is None:
             return render.rgb.new_zeros(()), {}
-        target, self._pending = self._pending, None
+        (_, target), self._pending = self._pending, None
         flow_g, flow_v, _ = decode_flows(features, render.alpha)
         result = lpfm_loss(flow_g, flow_v, target, render.alpha, self.config)
         return self.config.lambda_lpfm * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}

@@ -51,7 +51,7 @@ from pidg.training.optim import make_optimizers
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "pidg-checkpoint-2"
-STEP_PHASES = ("deformation", "physics", "flow", "render", "loss", "backward", "optimizer", "densification")
+STEP_PHASES = ("deformation", "physics", "flow_target", "flow", "render", "loss", "backward", "optimizer", "densification")
 
 
 @dataclass
@@ -195,11 +195,15 @@ class Trainer:
         return named
 
     def _render_features(self, terms: list[LossTerm], inputs: StepInputs) -> tuple[dict[str, slice], list[Tensor]]:
-        """The extra channels the active terms want in this step's render, and which columns are whose."""
+        """The extra channels the active terms want in this step's render, and which columns are whose; each term's
+        ``prepare`` (its cached work, e.g. the flow target) runs first, timed as its own phase."""
         slices: dict[str, slice] = {}
         channels: list[Tensor] = []
         start = 0
         for term in terms:
+            if type(term).prepare is not LossTerm.prepare:
+                with self.timer.phase(f"{term.phase}_target"):
+                    term.prepare(inputs)
             if type(term).render_features is LossTerm.render_features:  # asks for nothing
                 continue
             with self.timer.phase(term.phase):
