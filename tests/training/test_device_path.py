@@ -54,7 +54,7 @@ def test_the_cuda_path_trains_and_resumes_without_any_cpu_kernel(tmp_path, monke
     summary = full.train()
     assert (summary["rasterizer"], summary["hash_grids"], summary["ssim"]) == ("torch", "torch", "torch")
     assert summary["device"].startswith("cpu") and summary["peak_rss_mb"] > 0
-    assert {"physics", "flow"} <= set(summary["step_breakdown_ms"])
+    assert {"physics", "flow", "flow_target"} <= set(summary["step_breakdown_ms"])  # the target, timed apart
     assert any(h.get("densified") for h in full.history) and full.model.dynamic_mask is not None
     half = Trainer(device_agnostic_config(tmp_path / "half", 8), scene)
     half.train(iterations=5)
