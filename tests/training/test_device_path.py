@@ -98,6 +98,7 @@ def test_presets_follow_the_device_and_the_dataset(tmp_path):
     assert paper["dnerf"].deformation.grid4d == dataclasses.replace(TrainConfig().deformation.grid4d, decoder_depth=0)  # paper sizes
     cpu = apply_preset(TrainConfig(device="cpu"), "auto")
     assert cpu.preset == "cpu" and cpu.deformation.grid4d.width == 64 and cpu.optim.iterations == TrainConfig().optim.iterations
+    assert cpu.material.width == 64 and paper["dnerf"].material == TrainConfig().material  # the paper's 256 on a GPU
     # on D-NeRF scenes the cpu preset also sets a schedule for a CPU's budget; other kinds keep the defaults
     cpu_dnerf = apply_preset(TrainConfig(device="cpu"), "cpu", "dnerf")
     assert (cpu_dnerf.optim.iterations, cpu_dnerf.densify.start, cpu_dnerf.densify.stop, cpu_dnerf.densify.opacity_reset_every,
