@@ -157,14 +157,16 @@ class DynamicGaussians:
         return self.render_state(self.at(t), camera, features, sh_degree)
 
     def render_state(
-        self, state: DeformedGaussians, camera: Camera, features: Tensor | None = None, sh_degree: int | None = None
+        self, state: DeformedGaussians, camera: Camera, features: Tensor | None = None, sh_degree: int | None = None,
+        feature_pixels: Tensor | None = None,
     ) -> RenderOutput:
         """Render Gaussians already placed at some time (``at`` or ``canonical``) with this model's colours,
-        opacities and background (SH degree: the active one unless given)."""
+        opacities and background (SH degree: the active one unless given); ``feature_pixels`` as ``rasterize``'s."""
         g = self.gaussians
         return rasterize(
             state.means, state.quats, g.opacities, g.sh, camera, log_scales=state.log_scales, background=self.background,
             sh_degree=g.active_sh_degree if sh_degree is None else sh_degree, backend=self.backend, features=features,
+            feature_pixels=feature_pixels,
         )
 
     # ---- material field --------------------------------------------------------------------------------------

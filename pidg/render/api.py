@@ -5,19 +5,21 @@ composited with the same weights as colour in the same pass (later: Gaussian flo
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal, get_args
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
-from pidg.render.projection import Projection, project_gaussians
+from pidg.render.projection import Projection, project_gaussians, tile_grid
 from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.rasterize_cpu import composite_cpu
 from pidg.render.rasterize_gsplat import rasterize_gsplat
-from pidg.render.rasterize_torch import composite_reference
+from pidg.render.rasterize_torch import channels_below, composite_reference
 from pidg.render.sh import sh_to_rgb
 
 #: Which compositor renders: "cpu" (numba kernel), "torch" (reference), "gsplat" (CUDA), "auto" (by device).
@@ -88,6 +90,16 @@ def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cp
     return backend  # type: ignore[return-value]
 
 
+def feature_tile_channels(feature_pixels: Tensor, always: int, n_features: int, tile_size: int = TILE_SIZE) -> Tensor:
+    """[tiles_y * tiles_x] (row-major) channels each tile composites: ``always + n_features`` in the tiles that hold
+    a pixel of ``feature_pixels`` [H, W] (bool), ``always`` in the others."""
+    height, width = feature_pixels.shape
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    padded = F.pad(feature_pixels.to(torch.float32), (0, tiles_x * tile_size - width, 0, tiles_y * tile_size - height))
+    touched = padded.reshape(tiles_y, tile_size, tiles_x, tile_size).amax(dim=(1, 3)) > 0
+    return torch.where(touched, always + n_features, always).reshape(-1)
+
+
 def project(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera, backend: RenderBackend = "auto"
 ) -> Projection:
@@ -113,6 +125,7 @@ def rasterize(
     sh_degree: int | None = None,
     backend: RenderBackend = "auto",
     tile_size: int = TILE_SIZE,
+    feature_pixels: Tensor | None = None,
 ) -> RenderOutput:
     """Render N Gaussians into one camera.
 
@@ -124,6 +137,9 @@ def rasterize(
         background: RGB [3] composited behind the Gaussians (default black).
         backend: "cpu" (numba kernels: projection and colour, then compositing; float32 inputs, float64 ones take
             the torch projection), "torch" (reference), "gsplat" (CUDA), or "auto".
+        feature_pixels: optional [H, W] bool, the pixels whose ``features`` the caller reads: the features are
+            composited only in the 16x16 tiles that hold one of them and are 0 elsewhere, so a loss on a few pixels
+            pays for their tiles only (on the cpu backend; the others compute all and zero the rest).
     """
     if (scales is None) == (log_scales is None):
         raise ValueError("rasterize: pass exactly one of scales= or log_scales=")
@@ -133,6 +149,10 @@ def rasterize(
     _check_inputs(means, quats, lin_scales, opacities, colors, features, background, sh_degree, camera)
     which = resolve_backend(backend, means.device)
     camera = camera.to(means.device)
+    if feature_pixels is not None:
+        if tuple(feature_pixels.shape) != (camera.height, camera.width):
+            raise ValueError(f"rasterize: feature_pixels must be [H, W] = [{camera.height}, {camera.width}], got {list(feature_pixels.shape)}")
+        feature_pixels = feature_pixels.to(device=means.device, dtype=torch.bool)
     bg = background.to(means.dtype) if background is not None else means.new_zeros(3)
 
     if which == "cpu" and means.dtype == torch.float32:  # projection and colour as one numba kernel
@@ -143,16 +163,25 @@ def rasterize(
         else:
             rgb_per_gaussian = colors
         if which == "gsplat":
-            return rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
+            out = rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
+            if feature_pixels is not None and out.features is not None:
+                n_feat = out.features.shape[-1]
+                kept = channels_below(feature_tile_channels(feature_pixels, 0, n_feat, tile_size), n_feat, camera.width, camera.height, tile_size)
+                out = dataclasses.replace(out, features=out.features * kept.to(out.features.dtype))
+            return out
         proj = project_gaussians(means, quats, lin_scales, opacities, camera)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()  # the view-space positional gradient densification reads
     n_feat = 0 if features is None else features.shape[1]
     channels = [rgb_per_gaussian, proj.depths.unsqueeze(-1)] + ([features] if features is not None else [])
     per_gaussian = torch.cat(channels, dim=-1)  # [N, 3 + 1 + C]: colour, depth and features in one pass
+    tile_channels = None
+    if feature_pixels is not None and n_feat:
+        tile_channels = feature_tile_channels(feature_pixels, 4, n_feat, tile_size)  # colour and depth everywhere
     composite = composite_cpu if which == "cpu" else composite_reference
     image, alpha = composite(
-        proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size
+        proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size,
+        tile_channels,
     )
     # split, not sliced: each slice's backward fills a zero gradient of the whole image (measured 9 ms of a step)
     colour, depth, extra = image.split([3, 1, n_feat], dim=-1)

@@ -178,7 +178,7 @@ def _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, table,
     The caller allocates the arrays: arrays *returned* from an inlined function cost a 2.5x slowdown of the
     lane loops (measured), apparently because the compiler can no longer prove they do not alias.
     """
-    dim = feats.shape[1]
+    dim = tfeat.shape[1]  # the tile's channels: the leading ones of feats
     for k in range(table.shape[0]):
         g = isect_ids[start + k]
         a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opacities[g]
@@ -218,12 +218,13 @@ def _row_misses(table, k, pyc, n_lanes):  # pragma: no cover - compiled
 
 @njit(parallel=True, cache=True, nogil=True)
 def _forward_tiles(
-    means2d, conics, opacities, feats, tile_offsets, isect_ids, width, height, tile_size, tiles_x, out_img, out_trans, out_end
+    means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x, out_img,
+    out_trans, out_end
 ):  # pragma: no cover - compiled
-    dim = feats.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
     pow2 = _pow2_table()
     for tile in prange(n_tiles):
+        dim = tile_dims[tile]  # channels composited in this tile; the others are written as 0
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         ty = tile // tiles_x
         tx = tile - ty * tiles_x
@@ -279,20 +280,22 @@ def _forward_tiles(
                 px = x_lo + lane
                 for d in range(dim):
                     out_img[py, px, d] = acc[d, lane]
+                for d in range(dim, out_img.shape[2]):
+                    out_img[py, px, d] = 0.0
                 out_trans[py, px] = trans[lane]
                 out_end[py, px] = stop[lane]
 
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
-    means2d, conics, opacities, feats, tile_offsets, isect_ids, width, height, tile_size, tiles_x,
+    means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x,
     out_trans, out_end, grad_img, grad_alpha, isect_grads,
 ):  # pragma: no cover - compiled
-    dim = feats.shape[1]
-    n_slots = _N_PARAMS + dim
+    n_slots = isect_grads.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
     pow2 = _pow2_table()
     for tile in prange(n_tiles):
+        dim = tile_dims[tile]  # the forward's channels: the others are constant 0 here, with no gradient
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         if end == start:
             continue
@@ -411,18 +414,18 @@ def _f32(t: Tensor) -> np.ndarray:
 
 class _CompositeCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int):  # type: ignore[override]
+    def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int, tile_dims: np.ndarray):  # type: ignore[override]
         if bins.tile_size > LANES:
             raise ValueError(f"the CPU kernel supports tiles up to {LANES} pixels wide, got {bins.tile_size}")
         dim = features.shape[1]
         img = np.empty((height, width, dim), dtype=np.float32)
         trans = np.empty((height, width), dtype=np.float32)
         end = np.empty((height, width), dtype=np.int32)
-        args = (_f32(means2d), _f32(conics), _f32(opacities), _f32(features), bins.tile_offsets, bins.isect_ids)
+        args = (_f32(means2d), _f32(conics), _f32(opacities), _f32(features), bins.tile_offsets, bins.isect_ids, tile_dims)
         with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
             _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, trans, end)
         ctx.save_for_backward(means2d, conics, opacities, features)
-        ctx.bins, ctx.trans, ctx.end, ctx.size = bins, trans, end, (width, height)
+        ctx.bins, ctx.trans, ctx.end, ctx.size, ctx.tile_dims = bins, trans, end, (width, height), tile_dims
         dtype = features.dtype
         return torch.from_numpy(img).to(dtype), torch.from_numpy(1.0 - trans).to(dtype)
 
@@ -436,12 +439,13 @@ class _CompositeCPU(torch.autograd.Function):
         with numba.parallel_chunksize(1):
             _backward_tiles(
                 _f32(means2d), _f32(conics), _f32(opacities), _f32(features), bins.tile_offsets, bins.isect_ids,
-                width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, _f32(grad_img), _f32(grad_alpha), isect_grads,
+                ctx.tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, _f32(grad_img),
+                _f32(grad_alpha), isect_grads,
             )
         per_gauss = np.empty((n, _N_PARAMS + dim), dtype=np.float64)
         _reduce_per_gaussian(isect_grads, bins.gauss_offsets, bins.isect_of_gauss, per_gauss)
         g = torch.from_numpy(per_gauss).to(features.dtype)
-        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, _N_PARAMS:], None, None, None
+        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, _N_PARAMS:], None, None, None, None
 
 
 def composite_cpu(
@@ -454,10 +458,17 @@ def composite_cpu(
     width: int,
     height: int,
     tile_size: int = 16,
+    tile_channels: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Same contract as ``composite_reference``: image [H, W, D] and alpha [H, W], differentiable."""
+    """Same contract as ``composite_reference``: image [H, W, D] and alpha [H, W], differentiable; a tile composites
+    only its ``tile_channels`` leading channels (and pays for those only)."""
     bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
-    return _CompositeCPU.apply(means2d, conics, opacities, features, bins, width, height)
+    dim = features.shape[1]
+    if tile_channels is None:
+        tile_dims = np.full(bins.tiles_x * bins.tiles_y, dim, dtype=np.int64)
+    else:
+        tile_dims = np.minimum(tile_channels.detach().cpu().numpy().astype(np.int64).reshape(-1), dim)
+    return _CompositeCPU.apply(means2d, conics, opacities, features, bins, width, height, tile_dims)
 
 
 def count_pixel_gaussian_pairs(bins: TileBins, width: int, height: int) -> int:

@@ -24,12 +24,17 @@ def composite_reference(
     width: int,
     height: int,
     tile_size: int = 16,
+    tile_channels: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Alpha-composite per-Gaussian features [N, D] into an image [H, W, D]; also returns alpha [H, W].
 
     Gaussians with ``radii == 0`` are ignored. ``radii`` must bound every pixel where alpha >= 1/255 (as
-    ``project_gaussians`` guarantees), otherwise contributions would be cut at tile borders.
+    ``project_gaussians`` guarantees), otherwise contributions would be cut at tile borders. ``tile_channels``
+    [tiles_y * tiles_x] (row-major tiles): channels from that count on are 0 in that tile (see ``rasterize``).
     """
+    if tile_channels is not None:
+        image, alpha = composite_reference(means2d, conics, opacities, features, depths, radii, width, height, tile_size)
+        return image * channels_below(tile_channels, features.shape[1], width, height, tile_size).to(image.dtype), alpha
     dim = features.shape[1]
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
     visible = (radii > 0).all(dim=-1)
@@ -75,3 +80,12 @@ def composite_reference(
         rows_out.append(torch.cat(row_tiles, dim=1))
         alpha_rows.append(torch.cat(row_alpha, dim=1))
     return torch.cat(rows_out, dim=0), torch.cat(alpha_rows, dim=0)
+
+
+def channels_below(tile_channels: Tensor, n_channels: int, width: int, height: int, tile_size: int = 16) -> Tensor:
+    """[H, W, n_channels] bool: True for the channels a pixel's tile composites (``tile_channels`` [tiles_y *
+    tiles_x], row-major)."""
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    per_pixel = tile_channels.reshape(tiles_y, tiles_x).repeat_interleave(tile_size, 0).repeat_interleave(tile_size, 1)
+    per_pixel = per_pixel[:height, :width]
+    return torch.arange(n_channels, device=per_pixel.device) < per_pixel[..., None]

@@ -102,6 +102,10 @@ class LossTerm:
         """Extra per-Gaussian channels [N, C] the term needs composited in the step's render (None: none)."""
         return None
 
+    def feature_pixels(self) -> Tensor | None:
+        """The pixels [H, W] (bool) at which the term reads the channels it asked for this step (None: anywhere)."""
+        return None
+
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
         """The weighted loss and the scalars to log; ``features`` is the term's own slice of ``render.features``."""
         raise NotImplementedError
@@ -226,6 +230,9 @@ class FlowMatchingLoss(LossTerm):
             inputs.model, inputs.frame.camera, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
             inputs.deforming, flow_camera_t1(pair, self.config),
         )
+
+    def feature_pixels(self) -> Tensor | None:
+        return None if self._pending is None else self._pending[1].valid  # the loss reads the flows there only
 
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
         if self._pending is None or features is None:

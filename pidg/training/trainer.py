@@ -151,9 +151,9 @@ class Trainer:
             state = model.at(frame.time, regularize=True) if deforming else model.canonical()
         inputs = StepInputs(step, frame, model, state, deforming)
         terms = [term for term in self.loss_terms if term.active(step)]
-        slices, channels = self._render_features(terms, inputs)
+        slices, channels, pixels = self._render_features(terms, inputs)
         with timer.phase("render"):
-            out = model.render_state(state, frame.camera, torch.cat(channels, dim=-1) if channels else None)
+            out = model.render_state(state, frame.camera, channels, feature_pixels=pixels)
         loss: Tensor | None = None
         parts: dict[str, float] = {}
         features = _split_features(out.features, slices)
@@ -194,11 +194,13 @@ class Trainer:
             named += [(f"material_field.{k}", p) for k, p in model.material_field.named_parameters()]
         return named
 
-    def _render_features(self, terms: list[LossTerm], inputs: StepInputs) -> tuple[dict[str, slice], list[Tensor]]:
-        """The extra channels the active terms want in this step's render, and which columns are whose; each term's
-        ``prepare`` (its cached work, e.g. the flow target) runs first, timed as its own phase."""
+    def _render_features(self, terms: list[LossTerm], inputs: StepInputs) -> tuple[dict[str, slice], Tensor | None, Tensor | None]:
+        """The extra channels [N, C] the active terms want in this step's render (None: none), which columns are
+        whose, and the pixels [H, W] where any of them reads its channels (None: anywhere); each term's ``prepare``
+        (its cached work, e.g. the flow target) runs first, timed as its own phase."""
         slices: dict[str, slice] = {}
         channels: list[Tensor] = []
+        masks: list[Tensor | None] = []
         start = 0
         for term in terms:
             if type(term).prepare is not LossTerm.prepare:
@@ -212,7 +214,11 @@ class Trainer:
                 slices[term.name] = slice(start, start + features.shape[-1])
                 start += features.shape[-1]
                 channels.append(features)
-        return slices, channels
+                masks.append(term.feature_pixels())
+        if not channels:
+            return slices, None, None
+        pixels = None if any(m is None for m in masks) else torch.stack(masks).any(dim=0)  # type: ignore[arg-type]
+        return slices, torch.cat(channels, dim=-1), pixels
 
     # ---- loop -------------------------------------------------------------------------------------------
     def train(self, iterations: int | None = None) -> dict:

@@ -127,7 +127,7 @@ def test_flow_channels_of_the_supervised_footprints_give_the_full_loss_and_gradi
     target = FlowTarget(torch.randn(h, w, 2, generator=gen) * supervised.unsqueeze(-1), supervised)
     params = list(model.gaussians.params.values()) + list(model.deformation.parameters()) + list(model.material_field.parameters())
 
-    def loss_and_grads(subset: bool):
+    def loss_and_grads(subset: bool, tiles: bool = False):
         for p in params:
             p.grad = None
         state = model.at(frame.time)
@@ -135,7 +135,7 @@ def test_flow_channels_of_the_supervised_footprints_give_the_full_loss_and_gradi
             channels = supervised_flow_channels(model, frame.camera, state, frame.time, t1, dt, supervised)
         else:
             channels = flow_channels(model, frame.camera, state, model.at(t1), frame.time, dt)
-        out = model.render_state(state, frame.camera, channels)
+        out = model.render_state(state, frame.camera, channels, feature_pixels=supervised if tiles else None)
         flow_g, flow_v, _ = decode_flows(out.features, out.alpha)
         loss = lpfm_loss(flow_g, flow_v, target, out.alpha, FlowConfig(min_alpha=0.0)).loss
         loss.backward()
@@ -144,6 +144,10 @@ def test_flow_channels_of_the_supervised_footprints_give_the_full_loss_and_gradi
 
     full_loss, full_flow, full_grads, full_channels = loss_and_grads(False)
     sub_loss, sub_flow, sub_grads, sub_channels = loss_and_grads(True)
+    # the render composites the flow channels only in the supervised pixels' tiles (what training does): the same
+    tile_loss, tile_flow, tile_grads, _ = loss_and_grads(True, tiles=True)
+    assert torch.equal(tile_loss, sub_loss) and torch.equal(tile_flow, sub_flow)
+    assert all((a is None and b is None) or torch.equal(a, b) for a, b in zip(sub_grads, tile_grads))
     skipped = (sub_channels.abs().sum(-1) == 0) & (full_channels.abs().sum(-1) > 0)
     assert skipped.sum() > 0.2 * model.num_gaussians  # the subset is a real saving here
     assert float(full_loss) > 0

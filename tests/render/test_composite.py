@@ -168,3 +168,43 @@ def test_results_do_not_depend_on_tile_size():
     a = rasterize(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, tile_size=16)
     b = rasterize(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, tile_size=5)
     assert (a.rgb - b.rgb).abs().max() < 1e-6
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_feature_pixels_composite_features_in_their_tiles_only(backend):
+    """``feature_pixels``: features are those of the full render in the 16x16 tiles holding a chosen pixel and 0
+    elsewhere; colour, alpha and depth are untouched; a loss reading the features at the chosen pixels gets the
+    same gradients, bit for bit on the kernel (its zeroed channels add exact zeros)."""
+    camera = CAMERAS["wide"]()  # 70 x 38: partial tiles at the right and bottom edges
+    scene = hard_scene(camera, 150, torch.float32, n_features=5, seed=3)
+    pixels = torch.zeros(camera.height, camera.width, dtype=torch.bool)
+    pixels[3, 5] = pixels[20:22, 66:69] = True  # tiles (0, 0), (1, 4); (1, 4) is the partial corner tile
+    tiles = torch.zeros_like(pixels)
+    tiles[0:16, 0:16] = tiles[16:32, 64:70] = True
+    gen = torch.Generator().manual_seed(2)
+    weights = [torch.randn(camera.height, camera.width, k, generator=gen) for k in (3, 5)]
+    runs = {}
+    for restricted in (False, True):
+        params = [t.detach().clone().requires_grad_(True) for t in scene.params()]
+        s = GaussianScene(*params)
+        out = rasterize(s.means, s.quats, s.opacities, s.colors, camera, scales=s.scales, features=s.features,
+                        backend=backend, feature_pixels=pixels if restricted else None)
+        ((out.rgb * weights[0]).sum() + (out.features * weights[1] * pixels[..., None]).sum() + out.depth.sum()).backward()
+        runs[restricted] = (out, [p.grad for p in params])
+    (full, full_grads), (part, part_grads) = runs[False], runs[True]
+    assert torch.equal(part.rgb, full.rgb) and torch.equal(part.alpha, full.alpha) and torch.equal(part.depth, full.depth)
+    assert full.features[~tiles].abs().sum() > 0 and part.features[~tiles].abs().max() == 0
+    assert torch.equal(part.features[tiles], full.features[tiles])
+    for name, a, b in zip(["means", "quats", "scales", "opacities", "colors", "features"], full_grads, part_grads):
+        if backend == "cpu":
+            assert torch.equal(a, b), name
+        else:
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+
+
+def test_feature_pixels_of_the_wrong_size_are_named():
+    camera = orbit_camera(20, 10)
+    scene = random_scene(5, camera, n_features=2)
+    with pytest.raises(ValueError, match=r"feature_pixels must be \[H, W\] = \[10, 20\]"):
+        rasterize(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales,
+                  features=scene.features, feature_pixels=torch.ones(20, 10, dtype=torch.bool))
