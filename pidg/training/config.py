@@ -180,10 +180,14 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 #: The cpu preset's schedule for D-NeRF scenes (``layout`` "dnerf"), chosen on the validation split of bouncingballs
 #: and jumpingjacks at 400x400 (README, "D-NeRF on a CPU"): densification until 5000 with an opacity reset every 2000
 #: steps leaves 3000 steps to recover from each reset; the earlier 3600-step schedule densified until 2000 with a
-#: reset at 1000, whose pruning took 22k Gaussians down to 4k and left bouncingballs blurred (33.4 dB on val, 38.3
-#: with this schedule). Uncapped, lego grew past 120k Gaussians (1.5 it/s): densification stops adding at 30k.
+#: reset at 1000, whose pruning took 22k Gaussians down to 4k and left bouncingballs blurred (33.4 dB on val; 36.2
+#: with this schedule at 16 temporal cells). Uncapped, lego grew past 120k Gaussians (1.5 it/s): densification stops
+#: adding at 30k. The temporal grids' finest resolution along t is 32 here (16 elsewhere), chosen on the val split of
+#: all three scenes: D-NeRF scenes have 50-200 training times, and at 16 cells a bouncing ball's position between them
+#: was blurred (val PSNR at 16 / 32 / 64 cells: bouncingballs 36.2 / 39.8 / 38.7, jumpingjacks 34.1 / 34.0 / 31.9,
+#: lego 26.3 / 26.7 / 26.3).
 CPU_DNERF_SCHEDULE = {"iterations": 8000, "densify_start": 300, "densify_stop": 5000, "opacity_reset_every": 2000,
-                      "random_init_points": 20_000, "max_gaussians": 30_000}
+                      "random_init_points": 20_000, "max_gaussians": 30_000, "temporal_finest": (32, 32, 32)}
 
 
 def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLayout | None = None) -> TrainConfig:
@@ -195,7 +199,7 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
     most of what the full method adds to a step; on the demo scene, full method, 1200 steps: 24.03 against 23.76 dB,
     velocity-flow error 1.00 against 1.03 px, x1.30 the step rate); on D-NeRF scenes also a schedule for a CPU's budget
     (``CPU_DNERF_SCHEDULE``: 8000 steps, densification 300-5000 up to 30k Gaussians, opacity reset every 2000, 20k
-    random points). Their resolutions only grow from 8 to 32 (16 along t), so 32 levels
+    random points, temporal grids up to 32 cells along t). Their resolutions only grow from 8 to 32 (16 along t), so 32 levels
     sit 4.6% apart; 16 levels (9% apart) cover the same range at half the lookups, and the temporal grids were the
     largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
     "paper": the published model sizes (the defaults) and schedule (paper Sec. 5 and supp. A, D): 50k iterations
@@ -217,8 +221,10 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
         )
         config = replace(config, deformation=replace(config.deformation, grid4d=grid4d), material=replace(config.material, width=64))
         if layout == "dnerf":
+            temporal = replace(grid4d.temporal_grid, finest_resolution=CPU_DNERF_SCHEDULE["temporal_finest"])
             config = replace(
                 config,
+                deformation=replace(config.deformation, grid4d=replace(grid4d, temporal_grid=temporal)),
                 optim=replace(config.optim, iterations=CPU_DNERF_SCHEDULE["iterations"]),
                 densify=replace(config.densify, start=CPU_DNERF_SCHEDULE["densify_start"], stop=CPU_DNERF_SCHEDULE["densify_stop"],
                                 opacity_reset_every=CPU_DNERF_SCHEDULE["opacity_reset_every"],
@@ -244,5 +250,5 @@ def describe_schedule(config: TrainConfig) -> str:
         f"preset {config.preset}: {o.iterations} iterations, densification {d.start}-{d.stop} every {d.every} "
         f"(opacity reset every {d.opacity_reset_every}, prune scale {d.prune_world_scale}), network learning rates x0.1 per {decay} steps; {config.deformation.kind} "
         f"deformation, Grid4D tables 2^{g.spatial_grid.log2_table_size}/2^{g.temporal_grid.log2_table_size}, "
-        f"{g.temporal_grid.n_levels} temporal levels, width {g.width}, decoder depth {g.decoder_depth}"
+        f"{g.temporal_grid.n_levels} temporal levels up to {g.temporal_grid.finest_resolution}, width {g.width}, decoder depth {g.decoder_depth}"
     )

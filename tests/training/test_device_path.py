@@ -103,6 +103,10 @@ def test_presets_follow_the_device_and_the_dataset(tmp_path):
     cpu_dnerf = apply_preset(TrainConfig(device="cpu"), "cpu", "dnerf")
     assert (cpu_dnerf.optim.iterations, cpu_dnerf.densify.start, cpu_dnerf.densify.stop, cpu_dnerf.densify.opacity_reset_every,
             cpu_dnerf.gaussians.random_init_points, cpu_dnerf.densify.max_gaussians) == (8000, 300, 5000, 2000, 20_000, 30_000)
+    # ... and finer temporal grids along t (D-NeRF has up to 200 training times); the other grid settings stay the preset's
+    assert cpu_dnerf.deformation.grid4d.temporal_grid.finest_resolution == (32, 32, 32)
+    assert cpu.deformation.grid4d.temporal_grid.finest_resolution == (32, 32, 16)
+    assert dataclasses.replace(cpu_dnerf.deformation.grid4d.temporal_grid, finest_resolution=(32, 32, 16)) == cpu.deformation.grid4d.temporal_grid
     assert apply_preset(TrainConfig(device="cpu"), "cpu", "pidg").densify == TrainConfig().densify
     # the command line: the preset before the options, the dataset's layout from --data.path, recorded in config.json
     data = write_procedural_dataset(ProceduralSceneConfig(n_train=4, n_test=1, width=16, height=16, n_gaussians=500), tmp_path / "data")
