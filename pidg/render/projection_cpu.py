@@ -133,30 +133,46 @@ def _sh_basis_gradient(degree, x, y, z, g, out):  # pragma: no cover - compiled
     out[0], out[1], out[2] = gx, gy, gz
 
 
+@njit(cache=True, inline="always")
+def _unit_quat(quats, i):  # pragma: no cover - compiled
+    """Row i of ``quats`` normalised (w, x, y, z), and 1/|q| for the normalisation's backward."""
+    qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
+    qn = f32(1.0) / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    return qw * qn, qx * qn, qy * qn, qz * qn, qn
+
+
+@njit(cache=True, inline="always")
+def _view_point(cam, mx, my, mz):  # pragma: no cover - compiled
+    """Camera-space point of a world centre and the perspective Jacobian's factors, shared by forward and backward:
+    (x, y, z, in_depth, 1/z, x/z, y/z, tan_x, tan_y, fx/z, fx tan_x/z, fy/z, fy tan_y/z); the tangents clamped to the
+    frustum's extent as 3DGS clamps them (1/z is taken with z = 1 outside [near, far], where the Gaussian is culled)."""
+    fx, fy = cam[_FX], cam[_FY]
+    x = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[3]
+    y = cam[4] * mx + cam[5] * my + cam[6] * mz + cam[7]
+    z = cam[8] * mx + cam[9] * my + cam[10] * mz + cam[11]
+    in_depth = (z > cam[_NEAR]) and (z < cam[_FAR])
+    inv_z = f32(1.0) / (z if in_depth else f32(1.0))
+    tx_raw, ty_raw = x * inv_z, y * inv_z
+    tan_x = min(max(tx_raw, -cam[_LXN]), cam[_LXP])
+    tan_y = min(max(ty_raw, -cam[_LYN]), cam[_LYP])
+    return x, y, z, in_depth, inv_z, tx_raw, ty_raw, tan_x, tan_y, fx * inv_z, fx * tan_x * inv_z, fy * inv_z, fy * tan_y * inv_z
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _project_forward(means, quats, scales, opacities, coeffs, degree, cam, eps2d,
                      means2d, conics, depths, cov2d, rgb, radii):  # pragma: no cover - compiled
     n = means.shape[0]
     fx, fy, cx, cy = cam[_FX], cam[_FY], cam[_CX], cam[_CY]
-    width, height, near, far = cam[_WIDTH], cam[_HEIGHT], cam[_NEAR], cam[_FAR]
+    width, height = cam[_WIDTH], cam[_HEIGHT]
     n_basis = (degree + 1) * (degree + 1)
     for chunk in prange((n + _CHUNK - 1) // _CHUNK):
         r = np.empty((3, 3), dtype=np.float32)
         basis = np.empty(16, dtype=np.float32)
         for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
             mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
-            x = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[3]
-            y = cam[4] * mx + cam[5] * my + cam[6] * mz + cam[7]
-            z = cam[8] * mx + cam[9] * my + cam[10] * mz + cam[11]
-            in_depth = (z > near) and (z < far)
-            inv_z = f32(1.0) / (z if in_depth else f32(1.0))
-            tan_x = min(max(x * inv_z, -cam[_LXN]), cam[_LXP])
-            tan_y = min(max(y * inv_z, -cam[_LYN]), cam[_LYP])
-            a0s, b0s = fx * inv_z, fx * tan_x * inv_z
-            a1s, b1s = fy * inv_z, fy * tan_y * inv_z
-            qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
-            qn = f32(1.0) / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-            _rotmat(qw * qn, qx * qn, qy * qn, qz * qn, r)
+            x, y, z, in_depth, inv_z, tx_raw, ty_raw, tan_x, tan_y, a0s, b0s, a1s, b1s = _view_point(cam, mx, my, mz)
+            w, ux, uy, uz, qn = _unit_quat(quats, i)
+            _rotmat(w, ux, uy, uz, r)
             aa = ab = cc = f32(0.0)
             for k in range(3):  # a_r[k] = (sum_j R[j, k] jw_r[j]) * s[k]
                 v0 = f32(0.0)
@@ -203,7 +219,6 @@ def _project_backward(means, quats, scales, coeffs, degree, cam, eps2d, g_means2
                       grad_means, grad_quats, grad_scales, grad_coeffs):  # pragma: no cover - compiled
     n = means.shape[0]
     fx, fy = cam[_FX], cam[_FY]
-    near, far = cam[_NEAR], cam[_FAR]
     n_basis = (degree + 1) * (degree + 1)
     for chunk in prange((n + _CHUNK - 1) // _CHUNK):
         r = np.empty((3, 3), dtype=np.float32)
@@ -217,19 +232,8 @@ def _project_backward(means, quats, scales, coeffs, degree, cam, eps2d, g_means2
         for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
             # ---- recompute the forward's intermediates
             mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
-            x = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[3]
-            y = cam[4] * mx + cam[5] * my + cam[6] * mz + cam[7]
-            z = cam[8] * mx + cam[9] * my + cam[10] * mz + cam[11]
-            in_depth = (z > near) and (z < far)
-            inv_z = f32(1.0) / (z if in_depth else f32(1.0))
-            tx_raw, ty_raw = x * inv_z, y * inv_z
-            tan_x = min(max(tx_raw, -cam[_LXN]), cam[_LXP])
-            tan_y = min(max(ty_raw, -cam[_LYN]), cam[_LYP])
-            a0s, b0s = fx * inv_z, fx * tan_x * inv_z
-            a1s, b1s = fy * inv_z, fy * tan_y * inv_z
-            qw, qx, qy, qz = quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3]
-            qn = f32(1.0) / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-            w, ux, uy, uz = qw * qn, qx * qn, qy * qn, qz * qn
+            x, y, z, in_depth, inv_z, tx_raw, ty_raw, tan_x, tan_y, a0s, b0s, a1s, b1s = _view_point(cam, mx, my, mz)
+            w, ux, uy, uz, qn = _unit_quat(quats, i)
             _rotmat(w, ux, uy, uz, r)
             for j in range(3):
                 jw[0, j] = a0s * cam[j] - b0s * cam[8 + j]

@@ -222,19 +222,26 @@ def _vertical_4maps(p, g, t, lo, hi, base, vert):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
+def _ssim_terms(vert, u, step, c1, c2):  # pragma: no cover - compiled
+    """(mu_p, mu_g, A1, A2, B1, B2) at u, SSIM = A1 A2 / (B1 B2), from the horizontal pass of the rows of ``vert``."""
+    m0 = _hsum(vert, 0, u, step)  # mu_p
+    m1 = _hsum(vert, 1, u, step)  # mu_g
+    mq = _hsum(vert, 2, u, step)  # E[p^2 + g^2]
+    mr = _hsum(vert, 3, u, step)  # E[p g]
+    mpg = m0 * m1
+    msq = m0 * m0 + m1 * m1
+    a1 = np.float32(2.0) * mpg + c1
+    a2 = np.float32(2.0) * (mr - mpg) + c2
+    b1 = msq + c1
+    b2 = (mq - msq) + c2
+    return m0, m1, a1, a2, b1, b2
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH, error_model="numpy")
 def _ssim_values(vert, count, step, c1, c2, out):  # pragma: no cover - compiled
     """out[3, u] = SSIM at u for u < count, from the horizontal pass of the four rows of ``vert``."""
     for u in range(count):
-        m0 = _hsum(vert, 0, u, step)  # mu_p
-        m1 = _hsum(vert, 1, u, step)  # mu_g
-        mq = _hsum(vert, 2, u, step)  # E[p^2 + g^2]
-        mr = _hsum(vert, 3, u, step)  # E[p g]
-        mpg = m0 * m1
-        msq = m0 * m0 + m1 * m1
-        a1 = np.float32(2.0) * mpg + c1
-        a2 = np.float32(2.0) * (mr - mpg) + c2
-        b1 = msq + c1
-        b2 = (mq - msq) + c2
+        _, _, a1, a2, b1, b2 = _ssim_terms(vert, u, step, c1, c2)
         out[3, _u(u)] = a1 * a2 * (np.float32(1.0) / (b1 * b2))  # as below: the same bits with or without them
 
 
@@ -242,16 +249,7 @@ def _ssim_values(vert, count, step, c1, c2, out):  # pragma: no cover - compiled
 def _ssim_values_and_derivatives(vert, count, step, c1, c2, out):  # pragma: no cover - compiled
     """Like _ssim_values, and out[0..2, u] = dS/dmu_p, dS/dE[p^2] (= dS/dB2), dS/dE[p g] (one division)."""
     for u in range(count):
-        m0 = _hsum(vert, 0, u, step)  # mu_p
-        m1 = _hsum(vert, 1, u, step)  # mu_g
-        mq = _hsum(vert, 2, u, step)  # E[p^2 + g^2]
-        mr = _hsum(vert, 3, u, step)  # E[p g]
-        mpg = m0 * m1
-        msq = m0 * m0 + m1 * m1
-        a1 = np.float32(2.0) * mpg + c1
-        a2 = np.float32(2.0) * (mr - mpg) + c2
-        b1 = msq + c1
-        b2 = (mq - msq) + c2
+        m0, m1, a1, a2, b1, b2 = _ssim_terms(vert, u, step, c1, c2)
         inv_b1b2 = np.float32(1.0) / (b1 * b2)
         inv_b1 = b2 * inv_b1b2
         inv_b2 = b1 * inv_b1b2

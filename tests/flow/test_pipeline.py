@@ -3,9 +3,10 @@ optical flow must agree with the Gaussian flow rendered from the true Gaussians 
 and grid convention between preprocessing, decomposition and rendering at once."""
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -16,7 +17,7 @@ from pidg.data.procedural import (
     composite_rgba,
     write_procedural_dataset,
 )
-from pidg.data.scene import DataConfig
+from pidg.data.scene import DataConfig, Frame
 from pidg.flow import (
     FlowConfig,
     decode_flows,
@@ -30,8 +31,9 @@ from pidg.flow import (
     run_preprocess,
 )
 from pidg.flow.decomposition import motion_mask_from_flow
-from pidg.flow.preprocess import preprocess_flow
-from pidg.render import rasterize
+from pidg.flow.lpfm import total_flow_target
+from pidg.flow.preprocess import FlowPair, preprocess_flow
+from pidg.render import Camera, rasterize
 
 pytest.importorskip("cv2")
 
@@ -43,8 +45,22 @@ def truth() -> ProceduralScene:
     return ProceduralScene(SLOW_ORBIT)
 
 
-@pytest.mark.parametrize("t0", [0.3, 0.6])
-def test_decomposed_flow_matches_true_gaussian_flow(truth: ProceduralScene, t0: float):
+@dataclass
+class ObservedPair:
+    """Two consecutive training views of the true scene and the optical flow estimated between them (as preprocessing)."""
+
+    t0: float
+    t1: float
+    cam0: Camera
+    cam1: Camera
+    mask0: np.ndarray
+    forward: torch.Tensor
+    backward: torch.Tensor
+    valid_f: torch.Tensor
+    valid_b: torch.Tensor
+
+
+def observe_pair(truth: ProceduralScene, t0: float) -> ObservedPair:
     t1 = t0 + 1.0 / (SLOW_ORBIT.n_train - 1)
     cam0, cam1 = (truth.camera(truth.camera_to_world("train", t)) for t in (t0, t1))
     (rgba0, mask0), (rgba1, _) = truth.render(t0, cam0), truth.render(t1, cam1)
@@ -52,6 +68,14 @@ def test_decomposed_flow_matches_true_gaussian_flow(truth: ProceduralScene, t0: 
     estimator = make_estimator(FlowConfig())
     forward, backward = torch.from_numpy(estimator(image0, image1)), torch.from_numpy(estimator(image1, image0))
     valid_f, valid_b = forward_backward_consistency(forward, backward), forward_backward_consistency(backward, forward)
+    return ObservedPair(t0, t1, cam0, cam1, mask0, forward, backward, valid_f, valid_b)
+
+
+@pytest.mark.parametrize("t0", [0.3, 0.6])
+def test_decomposed_flow_matches_true_gaussian_flow(truth: ProceduralScene, t0: float):
+    pair = observe_pair(truth, t0)
+    t1, cam0, cam1, mask0 = pair.t1, pair.cam0, pair.cam1, pair.mask0
+    forward, backward, valid_f, valid_b = pair.forward, pair.backward, pair.valid_f, pair.valid_b
 
     g0, g1 = truth.gaussians(t0), truth.gaussians(t1)
     render1 = rasterize(g1.means, g1.quats, g1.opacities, g1.colors, cam1, scales=g1.scales)
@@ -87,17 +111,9 @@ def test_total_flow_of_the_true_gaussians_matches_the_optical_flow(truth: Proced
     """FlowConfig.target "total": the true Gaussians at t seen by camera t and at t+1 by camera t+1 render the optical
     flow itself (camera and object motion together), which the estimated flow must match everywhere it is
     consistent, ring and static floor alike; the motion flow (camera t twice) does not match it on static pixels."""
-    from pidg.flow.lpfm import total_flow_target
-    from pidg.flow.preprocess import FlowPair
-    from pidg.data.scene import Frame
-
-    t1 = t0 + 1.0 / (SLOW_ORBIT.n_train - 1)
-    cam0, cam1 = (truth.camera(truth.camera_to_world("train", t)) for t in (t0, t1))
-    (rgba0, mask0), (rgba1, _) = truth.render(t0, cam0), truth.render(t1, cam1)
-    image0, image1 = composite_rgba(rgba0, (0.0, 0.0, 0.0)), composite_rgba(rgba1, (0.0, 0.0, 0.0))
-    estimator = make_estimator(FlowConfig())
-    forward, backward = torch.from_numpy(estimator(image0, image1)), torch.from_numpy(estimator(image1, image0))
-    valid_f, valid_b = forward_backward_consistency(forward, backward), forward_backward_consistency(backward, forward)
+    pair = observe_pair(truth, t0)
+    t1, cam0, cam1, mask0 = pair.t1, pair.cam0, pair.cam1, pair.mask0
+    forward, backward, valid_f, valid_b = pair.forward, pair.backward, pair.valid_f, pair.valid_b
     frame0 = Frame(cam0, t0, torch.zeros(1, 1, 3, dtype=torch.uint8), name="a")
     frame1 = Frame(cam1, t1, torch.zeros(1, 1, 3, dtype=torch.uint8), name="b")
     target = total_flow_target(FlowPair(0, frame0, frame1, forward, backward, valid_f, valid_b), FlowConfig())
