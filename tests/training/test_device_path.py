@@ -102,7 +102,7 @@ def test_presets_follow_the_device_and_the_dataset(tmp_path):
     # on D-NeRF scenes the cpu preset also sets a schedule for a CPU's budget; other kinds keep the defaults
     cpu_dnerf = apply_preset(TrainConfig(device="cpu"), "cpu", "dnerf")
     assert (cpu_dnerf.optim.iterations, cpu_dnerf.densify.start, cpu_dnerf.densify.stop, cpu_dnerf.densify.opacity_reset_every,
-            cpu_dnerf.gaussians.random_init_points, cpu_dnerf.densify.max_gaussians) == (8000, 300, 5000, 2000, 20_000, 30_000)
+            cpu_dnerf.gaussians.random_init_points, cpu_dnerf.densify.max_gaussians) == (12_000, 300, 5000, 2000, 20_000, 30_000)
     # ... and finer temporal grids along t (D-NeRF has up to 200 training times); the other grid settings stay the preset's
     assert cpu_dnerf.deformation.grid4d.temporal_grid.finest_resolution == (32, 32, 32)
     assert cpu.deformation.grid4d.temporal_grid.finest_resolution == (32, 32, 16)
