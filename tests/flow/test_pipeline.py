@@ -3,8 +3,9 @@ optical flow must agree with the Gaussian flow rendered from the true Gaussians 
 and grid convention between preprocessing, decomposition and rendering at once."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -45,11 +46,10 @@ def truth() -> ProceduralScene:
     return ProceduralScene(SLOW_ORBIT)
 
 
-@dataclass
-class ObservedPair:
-    """Two consecutive training views of the true scene and the optical flow estimated between them (as preprocessing)."""
+class ObservedPair(NamedTuple):
+    """Two consecutive training views of the true scene (times, cameras, frame t's motion mask) and the optical flow
+    estimated between them with its consistency masks, as preprocessing computes it."""
 
-    t0: float
     t1: float
     cam0: Camera
     cam1: Camera
@@ -68,14 +68,12 @@ def observe_pair(truth: ProceduralScene, t0: float) -> ObservedPair:
     estimator = make_estimator(FlowConfig())
     forward, backward = torch.from_numpy(estimator(image0, image1)), torch.from_numpy(estimator(image1, image0))
     valid_f, valid_b = forward_backward_consistency(forward, backward), forward_backward_consistency(backward, forward)
-    return ObservedPair(t0, t1, cam0, cam1, mask0, forward, backward, valid_f, valid_b)
+    return ObservedPair(t1, cam0, cam1, mask0, forward, backward, valid_f, valid_b)
 
 
 @pytest.mark.parametrize("t0", [0.3, 0.6])
 def test_decomposed_flow_matches_true_gaussian_flow(truth: ProceduralScene, t0: float):
-    pair = observe_pair(truth, t0)
-    t1, cam0, cam1, mask0 = pair.t1, pair.cam0, pair.cam1, pair.mask0
-    forward, backward, valid_f, valid_b = pair.forward, pair.backward, pair.valid_f, pair.valid_b
+    t1, cam0, cam1, mask0, forward, backward, valid_f, valid_b = observe_pair(truth, t0)
 
     g0, g1 = truth.gaussians(t0), truth.gaussians(t1)
     render1 = rasterize(g1.means, g1.quats, g1.opacities, g1.colors, cam1, scales=g1.scales)
@@ -111,9 +109,7 @@ def test_total_flow_of_the_true_gaussians_matches_the_optical_flow(truth: Proced
     """FlowConfig.target "total": the true Gaussians at t seen by camera t and at t+1 by camera t+1 render the optical
     flow itself (camera and object motion together), which the estimated flow must match everywhere it is
     consistent, ring and static floor alike; the motion flow (camera t twice) does not match it on static pixels."""
-    pair = observe_pair(truth, t0)
-    t1, cam0, cam1, mask0 = pair.t1, pair.cam0, pair.cam1, pair.mask0
-    forward, backward, valid_f, valid_b = pair.forward, pair.backward, pair.valid_f, pair.valid_b
+    t1, cam0, cam1, mask0, forward, backward, valid_f, valid_b = observe_pair(truth, t0)
     frame0 = Frame(cam0, t0, torch.zeros(1, 1, 3, dtype=torch.uint8), name="a")
     frame1 = Frame(cam1, t1, torch.zeros(1, 1, 3, dtype=torch.uint8), name="b")
     target = total_flow_target(FlowPair(0, frame0, frame1, forward, backward, valid_f, valid_b), FlowConfig())
