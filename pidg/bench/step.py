@@ -10,12 +10,15 @@ import json
 from pathlib import Path
 from typing import Callable
 
+import torch
+
 from pidg.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pidg.config_tools import apply_overrides
 from pidg.data import load_scene
 from pidg.data.scene import parse_downscale
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig
 from pidg.training.run_folder import claim_run_folder
+from pidg.training.losses import LossTerm, StepInputs
 from pidg.training.trainer import STEP_PHASES, Trainer
 
 
@@ -60,7 +63,8 @@ def run_step_bench(
         trainer = Trainer(config, scene)
         if from_run is not None:
             _load_trained_model(trainer, Path(from_run) / CHECKPOINT_FILE, log)
-        trainer.train(warmup)
+        _observe_every_frame(trainer)
+        trainer.train(trainer.step + warmup)
         trainer.timer.totals.clear()
         trainer.timer.steps = 0
         trainer.train_seconds = 0.0
@@ -111,6 +115,22 @@ def _load_trained_model(trainer: Trainer, checkpoint: Path, log: Callable[[str],
         raise ValueError(f"{checkpoint}: its Gaussians descend from more particles than the fresh material field has rows")
     trainer.reset_optimization()
     trainer.step = int(state["step"])
+
+
+def _observe_every_frame(trainer: Trainer) -> None:
+    """Show the loss terms that keep something from renders a no-grad render of every training frame, as a run past
+    its first epoch has shown them: the timed steps then cost what the rest of a run's steps cost (the flow term
+    builds its targets from kept depths instead of rendering frame t+1 again)."""
+    terms = [term for term in trainer.loss_terms if type(term).observe is not LossTerm.observe]
+    if not terms:
+        return
+    model, deforming = trainer.model, trainer.deformation_active()
+    with torch.no_grad():
+        for frame in trainer.scene.train:
+            state = model.at(frame.time) if deforming else model.canonical()
+            out = model.render_state(state, frame.camera)
+            for term in terms:
+                term.observe(StepInputs(trainer.step, frame, model, state, deforming), out)
 
 
 def format_step_table(results: dict[str, dict], title: str) -> str:

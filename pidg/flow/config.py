@@ -64,11 +64,13 @@ class FlowConfig:
     """Pixels of camera-compensated flow above which a pixel counts as moving (datasets without motion masks)."""
     min_alpha: Annotated[float, Range(0, 1, hi_open=True)] = 0.05
     """Rendered alpha below which a pixel's rendered flow is not supervised."""
-    # flow_gt needs frame t+1's depth, rendered by the model (a no-grad render + the decomposition, ~100-250 ms per
-    # step on a CPU at 400x400). The depth of a converging model changes slowly, and each pair is visited once per
-    # epoch anyway.
+    # flow_gt needs frame t+1's depth as the model renders it. Training renders every frame once per epoch, so that
+    # depth is usually at hand from frame t+1's own step; otherwise it costs a no-grad deformation and render
+    # (~30 ms at 400x400 on a 2-core CPU, against ~3 ms for the decomposition). The depth of a converging model
+    # changes slowly.
     target_refresh_steps: Annotated[int, AT_LEAST_ONE] = 300
-    """A pair's flow target (built with the model's rendered depth) is rebuilt when older than this many steps."""
+    """Most steps the rendered depth behind a pair's flow target may be old: the target is rebuilt from frame t+1's
+    latest training render when that is younger, else from a render of its own."""
 
     def __post_init__(self) -> None:
         validate_config(self)

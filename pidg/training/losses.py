@@ -28,6 +28,7 @@ from pidg.flow import (
     FlowPair,
     FlowTarget,
     decode_flows,
+    depth_from_render,
     flow_camera_t1,
     flow_target_for_pair,
     lpfm_loss,
@@ -109,6 +110,10 @@ class LossTerm:
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
         """The weighted loss and the scalars to log; ``features`` is the term's own slice of ``render.features``."""
         raise NotImplementedError
+
+    def observe(self, inputs: StepInputs, render: RenderOutput) -> None:
+        """See the step's render (of ``inputs.frame`` at its time) and keep what later steps can reuse (the flow term:
+        the frame's depth, the target's input when the frame is a pair's t+1)."""
 
     def state_dict(self) -> dict[str, Any]:
         return {}
@@ -196,7 +201,10 @@ class FlowMatchingLoss(LossTerm):
     The target needs frame t+1's depth: the dataset's depth map when it has one, otherwise the model's own (a
     no-grad render at t+1 in camera t+1). That rendered depth is reused while younger than
     ``FlowConfig.target_refresh_steps`` and goes into checkpoints, so a resumed run builds the same targets as an
-    uninterrupted one. The target is known before the render, so only the Gaussians whose footprint reaches one of
+    uninterrupted one. Every training step renders its frame's depth anyway: the term keeps it (``observe``), and a
+    target due for a rebuild uses frame t+1's kept depth when it is young enough, so the render of its own is needed
+    only until frame t+1 has been trained (the first epoch). The target is known before the render, so only the
+    Gaussians whose footprint reaches one of
     its supervised pixels get flow channels (:func:`pidg.flow.supervised_flow_channels`: the same loss and
     gradients for the cost of those Gaussians). Steps whose frame starts no flow pair (the last frame), or whose
     target supervises no pixel, have no flow term."""
@@ -209,6 +217,7 @@ class FlowMatchingLoss(LossTerm):
         self.cache = cache
         self._targets: dict[str, _CachedTarget] = {}  # pair's first frame name -> flow_gt and what it came from
         self._pending: tuple[FlowPair, FlowTarget] | None = None  # this step's pair and target
+        self._depths: dict[str, tuple[int, Tensor]] = {}  # frame name -> (step, its depth in that step's render)
 
     def active(self, step: int) -> bool:
         return self.config.active(step)
@@ -242,31 +251,51 @@ class FlowMatchingLoss(LossTerm):
         result = lpfm_loss(flow_g, flow_v, target, render.alpha, self.config)
         return self.config.lambda_lpfm * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}
 
+    def observe(self, inputs: StepInputs, render: RenderOutput) -> None:
+        if not self._renders_depth(inputs.frame):
+            return
+        step, refresh = inputs.step, self.config.target_refresh_steps
+        self._depths = {name: kept for name, kept in self._depths.items() if step - kept[0] < refresh}
+        self._depths[inputs.frame.name] = (step, depth_from_render(render))
+
+    def _renders_depth(self, frame: Frame) -> bool:
+        """Whether targets need the model's depth of ``frame`` (the motion-flow target, where the data has none)."""
+        return self.config.target == "motion" and frame.depth is None
+
     def target(self, model: DynamicGaussians, pair: FlowPair, step: int, deforming: bool = True) -> FlowTarget:
-        """The pair's flow_gt, rebuilt when its cached depth is ``target_refresh_steps`` old (frame t+1's depth: the
-        dataset's, or a no-grad render of the model at t+1, canonical while ``deforming`` is False); the total-flow
-        target is built once."""
+        """The pair's flow_gt, rebuilt when its depth is ``target_refresh_steps`` old. Frame t+1's depth: the
+        dataset's; else the one kept from frame t+1's latest training render when younger than that; else a no-grad
+        render of the model at t+1 (canonical while ``deforming`` is False). The total-flow target is built once."""
         cached = self._targets.get(pair.frame0.name)
         fixed = self.config.target == "total"  # the optical flow itself: it never changes
-        if cached is not None and (fixed or step - cached.step < self.config.target_refresh_steps):
+        refresh = self.config.target_refresh_steps
+        if cached is not None and (fixed or step - cached.step < refresh):
             if cached.target is None:  # restored from a checkpoint (on the CPU): rebuild from the saved depth
                 depth = pair.frame1.depth if cached.depth is None else cached.depth.to(pair.forward.device)
                 cached.target = flow_target_for_pair(pair, depth, self.config)
             return cached.target
-        state_t1 = None
-        if pair.frame1.depth is None and self.config.target == "motion":
-            with torch.no_grad():
-                state_t1 = model.at(pair.frame1.time) if deforming else model.canonical()
-        target, depth = model_flow_target(model, pair, state_t1, self.config)
-        self._targets[pair.frame0.name] = _CachedTarget(step, depth, target)
+        kept = self._depths.get(pair.frame1.name) if self._renders_depth(pair.frame1) else None
+        if kept is not None and step - kept[0] < refresh:  # aged from its render, as a depth rendered here would be
+            built_at, depth = kept[0], kept[1].to(pair.forward.device)
+            target = flow_target_for_pair(pair, depth, self.config)
+        else:
+            state_t1 = None
+            if self._renders_depth(pair.frame1):
+                with torch.no_grad():
+                    state_t1 = model.at(pair.frame1.time) if deforming else model.canonical()
+            built_at = step
+            target, depth = model_flow_target(model, pair, state_t1, self.config)
+        self._targets[pair.frame0.name] = _CachedTarget(built_at, depth, target)
         return target
 
     def state_dict(self) -> dict[str, Any]:
-        # the rendered depths behind cached flow targets (the targets are rebuilt from them on resume)
-        return {"depths": {k: (c.step, c.depth) for k, c in self._targets.items()}}
+        # the rendered depths behind cached flow targets (the targets are rebuilt from them on resume) and the kept
+        # depths of recent renders; a target built from a kept depth holds the same tensor, saved once
+        return {"depths": {k: (c.step, c.depth) for k, c in self._targets.items()}, "frame_depths": dict(self._depths)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self._targets = {k: _CachedTarget(step, depth, None) for k, (step, depth) in state["depths"].items()}
+        self._depths = {k: (step, depth) for k, (step, depth) in state.get("frame_depths", {}).items()}
 
 
 def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[LossTerm]:

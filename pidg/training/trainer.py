@@ -159,6 +159,7 @@ class Trainer:
         features = _split_features(out.features, slices)
         for term in terms:
             with timer.phase(term.phase):
+                term.observe(inputs, out)
                 value, scalars = term.loss(inputs, out, features.get(term.name))
                 loss = value if loss is None else loss + value
                 parts.update(scalars)

@@ -7,8 +7,10 @@ import torch
 from pidg.data.procedural import ProceduralSceneConfig, make_procedural_scene
 from pidg.evaluation.evaluate import flow_end_point_errors
 from pidg.flow import flow_target_for_pair, model_flow_target
+from pidg.flow.model_flow import rendered_depth
 from pidg.models.deformation import HashGridConfig
 from pidg.training.config import TrainConfig
+from pidg.training.losses import StepInputs
 from pidg.training.trainer import Trainer
 
 
@@ -92,11 +94,18 @@ def test_full_pidg_step_adds_cmr_and_lpfm_and_trains_the_material_field(scene, t
     assert errors["flow_supervised_pixels"] > 0 and errors["velocity_flow_epe"] >= 0.0
 
 
-def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path):
-    # 8 training frames: the second epoch reuses flow targets built in the first, across the interruption
-    full = Trainer(physics_flow_config(tmp_path / "full", iterations=14), scene)
+@pytest.mark.parametrize("refresh", [300, 6])
+def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh):
+    # 8 training frames: the second epoch reuses flow targets built in the first, across the interruption; with a
+    # 6-step refresh it rebuilds them from depths kept from training renders, some of them before the interruption
+    def config(out_dir):
+        cfg = physics_flow_config(out_dir, iterations=14)
+        cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=refresh)
+        return cfg
+
+    full = Trainer(config(tmp_path / "full"), scene)
     full.train()
-    half = Trainer(physics_flow_config(tmp_path / "half", iterations=14), scene)
+    half = Trainer(config(tmp_path / "half"), scene)
     half.train(iterations=10)
     resumed = Trainer.from_checkpoint(tmp_path / "half" / "checkpoint.pt", scene)
     resumed.train()
@@ -126,6 +135,38 @@ def test_total_flow_target_is_the_optical_flow_and_is_built_once(scene, tmp_path
     expected_valid = pair.valid_forward & grown
     assert torch.equal(cached.target.valid, expected_valid)
     assert torch.equal(cached.target.flow[expected_valid], pair.forward[expected_valid])
+
+
+def test_flow_targets_reuse_the_depth_of_frame_t1s_training_render(scene, tmp_path):
+    """The depth a training step renders for its frame is the depth a target with that frame as t+1 needs: kept, it
+    gives the same target as a render of its own, and once every frame has been trained no step renders twice."""
+    trainer = Trainer(physics_flow_config(tmp_path, iterations=1), scene)
+    model, flow_term = trainer.model, next(term for term in trainer.loss_terms if term.name == "lpfm")
+    pair = trainer.flow_cache.pair(2)
+    frame = pair.frame1
+    state = model.at(frame.time, regularize=True)
+    flow_term.observe(StepInputs(7, frame, model, state, True), model.render_state(state, frame.camera))
+    kept_step, kept = flow_term._depths[frame.name]
+    assert kept_step == 7 and torch.equal(kept, rendered_depth(model, model.at(frame.time), frame.camera))
+    target = flow_term.target(model, pair, step=9)
+    expected = model_flow_target(model, pair, None, trainer.config.flow)[0]
+    assert torch.equal(target.flow, expected.flow) and torch.equal(target.valid, expected.valid)
+    cached = flow_term._targets[pair.frame0.name]
+    assert cached.step == 7 and cached.depth is kept  # aged from the render; one tensor in checkpoints
+    assert flow_term.target(model, pair, step=9 + 300) is not target  # too old: rebuilt (kept depth too old: rendered)
+
+    cfg = physics_flow_config(tmp_path / "run", iterations=40)
+    cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=16)  # > 15, the longest gap between two visits
+    trainer = Trainer(cfg, scene)
+    renders: list[int] = []
+    original = trainer.model.render_state
+    trainer.model.render_state = lambda *a, **k: renders.append(trainer.step) or original(*a, **k)
+    trainer.train()
+    later = [s for s in renders if s >= len(scene.train)]  # every frame has been trained once
+    assert later == list(range(len(scene.train), 40))  # one render per step: the step's own
+    assert sum(1 for s in renders if s < len(scene.train)) > len(scene.train)  # first epoch: targets render depth
+    flow_term = next(term for term in trainer.loss_terms if term.name == "lpfm")
+    assert any(c.step >= 16 for c in flow_term._targets.values())  # rebuilt (from kept depths) after the refresh
 
 
 def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):

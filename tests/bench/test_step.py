@@ -1,0 +1,37 @@
+"""``pidg bench step`` times the steps of a run past its first epoch: the flow term finds the depths of frame t+1
+kept from training renders, so a timed step renders once, as in a real run."""
+import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
+
+import dataclasses
+
+from pidg.bench.step import run_step_bench
+from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
+from pidg.models.deformation import HashGridConfig
+from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.training.config import TrainConfig
+
+
+def test_step_bench_times_steady_state_steps(tmp_path, monkeypatch):
+    n_train = 6
+    root = write_procedural_dataset(
+        ProceduralSceneConfig(n_train=n_train, n_test=1, width=32, height=32, n_gaussians=600, n_init_points=200), tmp_path / "scene"
+    )
+    cfg = TrainConfig()
+    cfg.deformation.grid4d = dataclasses.replace(
+        cfg.deformation.grid4d, spatial_grid=HashGridConfig(4, 2, 12, 4, 64), temporal_grid=HashGridConfig(4, 2, 12, 4, 16), width=16
+    )
+    cfg.material = dataclasses.replace(cfg.material, width=16, embedding_dim=8)
+    cfg.physics = dataclasses.replace(cfg.physics, samples=64, block_size=32)
+    cfg.gaussians = dataclasses.replace(cfg.gaussians, init_opacity=0.8)
+    cfg.output = dataclasses.replace(cfg.output, dir=tmp_path / "runs")
+    renders = []
+    original = DynamicGaussians.render_state
+    monkeypatch.setattr(DynamicGaussians, "render_state", lambda self, *a, **k: renders.append(1) or original(self, *a, **k))
+    warmup, iterations = 3, 4
+    results = run_step_bench(
+        root, cfg, ["base", "full"], downscale=None, gaussians=200, iterations=iterations, warmup=warmup, chunk=2, out=None, log=lambda _: None
+    )
+    assert {"flow", "flow_target", "physics"} <= set(results["full"]["step_breakdown_ms"])
+    assert "flow" not in results["base"]["step_breakdown_ms"]
+    # base: one render per step; full: one per training frame to start from (its kept depths), then one per step
+    assert len(renders) == 2 * (warmup + iterations) + n_train
