@@ -147,10 +147,15 @@ def test_flow_targets_reuse_the_depth_of_frame_t1s_training_render(scene, tmp_pa
     state = model.at(frame.time, regularize=True)
     flow_term.observe(StepInputs(7, frame, model, state, True), model.render_state(state, frame.camera))
     kept_step, kept = flow_term._depths[frame.name]
-    assert kept_step == 7 and torch.equal(kept, rendered_depth(model, model.at(frame.time), frame.camera))
+    rendered = rendered_depth(model, model.at(frame.time), frame.camera)
+    assert kept_step == 7 and kept.dtype == torch.float16 and torch.equal(kept, rendered.half())
     target = flow_term.target(model, pair, step=9)
-    expected = model_flow_target(model, pair, None, trainer.config.flow)[0]
+    expected = flow_target_for_pair(pair, rendered.half().float(), trainer.config.flow)
     assert torch.equal(target.flow, expected.flow) and torch.equal(target.valid, expected.valid)
+    full_precision = model_flow_target(model, pair, None, trainer.config.flow)[0]  # what a render of its own gives
+    both = target.valid & full_precision.valid
+    assert both.sum() > 0.99 * full_precision.valid.sum()
+    assert (target.flow - full_precision.flow)[both].abs().max() < 0.05  # px; measured 0.014 (half-precision depth)
     cached = flow_term._targets[pair.frame0.name]
     assert cached.step == 7 and cached.depth is kept  # aged from the render; one tensor in checkpoints
     assert flow_term.target(model, pair, step=9 + 300) is not target  # too old: rebuilt (kept depth too old: rendered)
