@@ -17,8 +17,8 @@ from pidg.config_tools import apply_overrides
 from pidg.data import load_scene
 from pidg.data.scene import parse_downscale
 from pidg.training.config import ABLATION_VARIANTS, TrainConfig
-from pidg.training.run_folder import claim_run_folder
 from pidg.training.losses import LossTerm, StepInputs
+from pidg.training.run_folder import claim_run_folder
 from pidg.training.trainer import STEP_PHASES, Trainer
 
 

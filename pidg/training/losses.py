@@ -209,10 +209,9 @@ class FlowMatchingLoss(LossTerm):
     uninterrupted one. Every training step renders its frame's depth anyway: the term keeps it (``observe``), and a
     target due for a rebuild uses frame t+1's kept depth when it is young enough, so the render of its own is needed
     only until frame t+1 has been trained (the first epoch). The target is known before the render, so only the
-    Gaussians whose footprint reaches one of
-    its supervised pixels get flow channels (:func:`pidg.flow.supervised_flow_channels`: the same loss and
-    gradients for the cost of those Gaussians). Steps whose frame starts no flow pair (the last frame), or whose
-    target supervises no pixel, have no flow term."""
+    Gaussians whose footprint reaches one of its supervised pixels get flow channels
+    (:func:`pidg.flow.supervised_flow_channels`: the same loss and gradients for the cost of those Gaussians).
+    Steps whose frame starts no flow pair (the last frame), or whose target supervises no pixel, have no flow term."""
 
     name = "lpfm"
     phase = "flow"
