@@ -128,9 +128,9 @@ def _observe_every_frame(trainer: Trainer) -> None:
     with torch.no_grad():
         for frame in trainer.scene.train:
             state = model.at(frame.time) if deforming else model.canonical()
-            out = model.render_state(state, frame.camera)
+            inputs, out = StepInputs(trainer.step, frame, model, state, deforming), model.render_state(state, frame.camera)
             for term in terms:
-                term.observe(StepInputs(trainer.step, frame, model, state, deforming), out)
+                term.observe(inputs, out)
 
 
 def format_step_table(results: dict[str, dict], title: str) -> str:
