@@ -8,9 +8,10 @@ Pipeline, with no Python loop over Gaussians:
   1. ``bin_gaussians``: each visible Gaussian's bounding box -> the 16x16 tiles it touches; a counting sort by
      tile of the depth-sorted Gaussians yields per-tile lists in front-to-back order (O(#intersections)).
   2. ``_forward_tiles``: one parallel task per tile. A tile row of 16 pixels is processed as 16 SIMD lanes:
-     for each Gaussian of the tile list (skipping those whose alpha >= 1/255 ellipse misses the row), alpha
-     is computed for all lanes with a branch-free polynomial exp, so the compiler vectorises the lane loop and
-     no per-pixel branch is mispredicted. Each pixel stops once its transmittance would fall below 1e-4; the
+     the tile list is culled against the row 16 Gaussians at a time in one vector pass (the alpha >= 1/255
+     ellipse must reach the row), and for each Gaussian that does, alpha is computed for all lanes with a
+     branch-free polynomial exp, so the compiler vectorises the lane loop and no per-pixel branch is
+     mispredicted. Each pixel stops once its transmittance would fall below 1e-4; the
      row stops when all its pixels have. Per pixel it records the final transmittance and the end of its
      contributing prefix.
   3. ``_backward_tiles``: the same row/lane structure, back to front from that end, recovering each
@@ -25,10 +26,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import llvmlite.ir
 import numba
 import numpy as np
 import torch
 from numba import njit, prange
+from numba.extending import intrinsic
 from torch import Tensor
 
 from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, tile_grid
@@ -145,75 +148,107 @@ def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, he
     return TileBins(tile_offsets, isect_ids, gauss_offsets, isect_of_gauss, tiles_x, tiles_y, tile_size)
 
 
+@intrinsic
+def _float32_from_bits(typingctx, bits):  # pragma: no cover - compiled
+    """Reinterpret an int32's bits as a float32 (LLVM bitcast): 2^n built in a register, where a table lookup
+    made the lane loops gather."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], llvmlite.ir.FloatType())
+
+    return numba.types.float32(numba.types.int32), codegen
+
+
 @njit(cache=True, inline="always")
-def _exp_neg(x, pow2):  # pragma: no cover - compiled
+def _exp_neg(x):  # pragma: no cover - compiled
     """exp(x) for x in [-5.6, 0], branch-free so lane loops vectorise: 2^n * Estrin(6) on [-ln2/2, ln2/2]."""
     t = x * f32(_LOG2E)
     n = np.floor(t + f32(0.5))
     r = (t - n) * f32(_LN2)
     r2 = r * r
     poly = (f32(1.0) + r) + r2 * ((f32(0.5) + r * f32(1.0 / 6.0)) + r2 * ((f32(1.0 / 24.0) + r * f32(1.0 / 120.0)) + r2 * f32(1.0 / 720.0)))
-    return poly * pow2[np.int32(-n)]
+    return poly * _float32_from_bits((np.int32(n) + np.int32(127)) << np.int32(23))  # 2^n, n in [-9, 0]
+
+
+# Per-tile Gaussian table rows (float32, one column per Gaussian of the tile, so that a block of Gaussians is
+# contiguous): centre x relative to the tile's first column, centre y, conic a, b, c, opacity, log-alpha
+# threshold, the rows [y_lo, y_hi] the alpha >= 1/255 ellipse can reach, and 1/a, b/a, det/a for the per-row
+# cull (divisions hoisted out of the row loop).
+_MX, _MY, _CA, _CB, _CC, _OP, _TH, _YLO, _YHI, _INV_A, _B_OVER_A, _DET_OVER_A = range(12)
+_N_COLS = 12
+CULL_BLOCK = 16  # Gaussians culled together per row: one vectorised pass, then a compacted list of the hits
 
 
 @njit(cache=True, inline="always")
-def _pow2_table():  # pragma: no cover - compiled
-    table = np.empty(16, dtype=np.float32)
-    for i in range(16):
-        table[i] = f32(2.0 ** (-i))
-    return table
-
-
-# Per-tile Gaussian table columns (float32): centre x relative to the tile's first column, centre y, conic
-# a, b, c, opacity, log-alpha threshold, the rows [y_lo, y_hi] the alpha >= 1/255 ellipse can reach, and
-# 1/a, b/a, det/a for the per-row cull (divisions hoisted out of the row loop).
-_MX, _MY, _CA, _CB, _CC, _OP, _TH, _YLO, _YHI, _INV_A, _B_OVER_A, _DET_OVER_A = range(12)
-_N_COLS = 12
+def _padded(n):  # pragma: no cover - compiled
+    return (n + CULL_BLOCK - 1) // CULL_BLOCK * CULL_BLOCK
 
 
 @njit(cache=True, inline="always")
 def _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, table, tfeat):  # pragma: no cover - compiled
     """Copy a tile's Gaussians into contiguous local arrays, with their per-Gaussian row bounds.
 
+    The table has room for whole cull blocks; its padding columns reach no row, so a block needs no tail test.
     The caller allocates the arrays: arrays *returned* from an inlined function cost a 2.5x slowdown of the
     lane loops (measured), apparently because the compiler can no longer prove they do not alias.
     """
     dim = tfeat.shape[1]  # the tile's channels: the leading ones of feats
-    for k in range(table.shape[0]):
+    n = tfeat.shape[0]
+    for k in range(n):
         g = isect_ids[start + k]
         a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opacities[g]
         threshold = math.log(ALPHA_MIN / o) - _THRESHOLD_MARGIN  # alpha >= 1/255  <=>  power >= log(1/(255 o))
         # rows within reach: max over x of the power on a row at offset dy is -dy^2 det / (2a)
         det = a * c - b * b
         reach_y = math.sqrt(max(-2.0 * threshold, 0.0) * a / det) + 1e-3
-        table[k, _MX] = means2d[g, 0] - x_lo
-        table[k, _MY] = means2d[g, 1]
-        table[k, _CA] = a
-        table[k, _CB] = b
-        table[k, _CC] = c
-        table[k, _OP] = o
-        table[k, _TH] = threshold
-        table[k, _YLO] = means2d[g, 1] - reach_y
-        table[k, _YHI] = means2d[g, 1] + reach_y
-        table[k, _INV_A] = 1.0 / a
-        table[k, _B_OVER_A] = b / a
-        table[k, _DET_OVER_A] = det / a
+        table[_MX, k] = means2d[g, 0] - x_lo
+        table[_MY, k] = means2d[g, 1]
+        table[_CA, k] = a
+        table[_CB, k] = b
+        table[_CC, k] = c
+        table[_OP, k] = o
+        table[_TH, k] = threshold
+        table[_YLO, k] = means2d[g, 1] - reach_y
+        table[_YHI, k] = means2d[g, 1] + reach_y
+        table[_INV_A, k] = 1.0 / a
+        table[_B_OVER_A, k] = b / a
+        table[_DET_OVER_A, k] = det / a
         for d in range(dim):
             tfeat[k, d] = feats[g, d]
+    for k in range(n, table.shape[1]):  # padding: finite values, and an empty row range
+        for col in range(_N_COLS):
+            table[col, k] = 0.0
+        table[_YLO, k] = 1.0
+        table[_YHI, k] = -1.0
 
 
 @njit(cache=True, inline="always")
 def _row_misses(table, k, pyc, n_lanes):  # pragma: no cover - compiled
     """True when Gaussian k cannot reach alpha >= 1/255 on any pixel of this tile row (a cheap exact cull).
 
-    Written with a single return and no early exits: the branchy form made the caller's lane loops 2.5x slower.
+    Written with a single return and no early exits, so that a block of Gaussians is culled as one vector loop.
     """
-    dy = table[k, _MY] - pyc
-    reach = max(f32(-0.5) * dy * dy * table[k, _DET_OVER_A] - table[k, _TH], f32(0.0))
-    half_width = math.sqrt(f32(2.0) * reach * table[k, _INV_A]) + f32(1e-3)
-    centre = table[k, _MX] + table[k, _B_OVER_A] * dy  # the row's maximum of the Gaussian, tile-local pixels
+    dy = table[_MY, k] - pyc
+    reach = max(f32(-0.5) * dy * dy * table[_DET_OVER_A, k] - table[_TH, k], f32(0.0))
+    half_width = math.sqrt(f32(2.0) * reach * table[_INV_A, k]) + f32(1e-3)
+    centre = table[_MX, k] + table[_B_OVER_A, k] * dy  # the row's maximum of the Gaussian, tile-local pixels
     outside_x = (centre + half_width < f32(0.5)) | (centre - half_width > f32(n_lanes) - f32(0.5))
-    return (pyc < table[k, _YLO]) | (pyc > table[k, _YHI]) | (reach <= f32(0.0)) | outside_x
+    return (pyc < table[_YLO, k]) | (pyc > table[_YHI, k]) | (reach <= f32(0.0)) | outside_x
+
+
+@njit(cache=True)
+def _cull_block(table, k0, k_limit, pyc, n_lanes, misses, hits):  # pragma: no cover - compiled
+    """The Gaussians k0 .. min(k0 + CULL_BLOCK, k_limit) - 1 that reach this row, in order, into ``hits``;
+    returns their count.
+
+    One branch-free pass (vectorised) instead of a test and an unpredictable branch per Gaussian.
+    """
+    for j in range(CULL_BLOCK):
+        misses[j] = 1 if _row_misses(table, k0 + j, pyc, n_lanes) | (k0 + j >= k_limit) else 0
+    count = 0
+    for j in range(CULL_BLOCK):
+        hits[count] = k0 + j
+        count += 1 - misses[j]
+    return count
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -222,7 +257,6 @@ def _forward_tiles(
     out_trans, out_end
 ):  # pragma: no cover - compiled
     n_tiles = tile_offsets.shape[0] - 1
-    pow2 = _pow2_table()
     for tile in prange(n_tiles):
         dim = tile_dims[tile]  # channels composited in this tile; the others are written as 0
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
@@ -231,9 +265,12 @@ def _forward_tiles(
         x_lo, y_lo = tx * tile_size, ty * tile_size
         x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
         n_lanes = x_hi - x_lo
-        table = np.empty((end - start, _N_COLS), dtype=np.float32)
-        tfeat = np.empty((end - start, dim), dtype=np.float32)
+        n_k = end - start
+        table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
+        tfeat = np.empty((n_k, dim), dtype=np.float32)
         _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, table, tfeat)
+        misses = np.empty(CULL_BLOCK, dtype=np.int32)
+        hits = np.empty(CULL_BLOCK, dtype=np.int64)
         trans = np.empty(LANES, dtype=np.float32)
         weight = np.empty(LANES, dtype=np.float32)
         acc = np.empty((dim, LANES), dtype=np.float32)
@@ -251,29 +288,33 @@ def _forward_tiles(
             for d in range(dim):  # (a slice assignment here made the lane loops 2.5x slower)
                 for lane in range(LANES):
                     acc[d, lane] = 0.0
-            for k in range(end - start):
-                if _row_misses(table, k, pyc, n_lanes):
-                    continue
-                mx, dy = table[k, _MX], table[k, _MY] - pyc
-                a, b, o, threshold = table[k, _CA], table[k, _CB], table[k, _OP], table[k, _TH]
-                c_term = f32(-0.5) * table[k, _CC] * dy * dy
-                n_live = 0
-                for lane in range(LANES):  # vectorised: no branches, only selects
-                    dx = mx - xs[lane]
-                    power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
-                    alpha = min(f32(ALPHA_MAX), o * _exp_neg(min(max(power, f32(_POWER_FLOOR)), f32(0.0)), pow2))
-                    hit = (live[lane] > 0) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
-                    next_trans = trans[lane] * (f32(1.0) - alpha)
-                    adds = hit & (next_trans >= f32(TRANSMITTANCE_MIN))
-                    live[lane] = 0 if (hit & (next_trans < f32(TRANSMITTANCE_MIN))) else live[lane]
-                    weight[lane] = alpha * trans[lane] if adds else f32(0.0)
-                    trans[lane] = next_trans if adds else trans[lane]
-                    stop[lane] = k + 1 if adds else stop[lane]
-                    n_live += live[lane]
-                for d in range(dim):
-                    f = tfeat[k, d]
-                    for lane in range(LANES):
-                        acc[d, lane] += weight[lane] * f
+            n_live = 1
+            for k0 in range(0, n_k, CULL_BLOCK):
+                n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
+                for i in range(n_hits):
+                    k = hits[i]
+                    mx, dy = table[_MX, k], table[_MY, k] - pyc
+                    a, b, o, threshold = table[_CA, k], table[_CB, k], table[_OP, k], table[_TH, k]
+                    c_term = f32(-0.5) * table[_CC, k] * dy * dy
+                    n_live = 0
+                    for lane in range(LANES):  # vectorised: no branches, only selects
+                        dx = mx - xs[lane]
+                        power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
+                        alpha = min(f32(ALPHA_MAX), o * _exp_neg(min(max(power, f32(_POWER_FLOOR)), f32(0.0))))
+                        hit = (live[lane] > 0) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
+                        next_trans = trans[lane] * (f32(1.0) - alpha)
+                        adds = hit & (next_trans >= f32(TRANSMITTANCE_MIN))
+                        live[lane] = 0 if (hit & (next_trans < f32(TRANSMITTANCE_MIN))) else live[lane]
+                        weight[lane] = alpha * trans[lane] if adds else f32(0.0)
+                        trans[lane] = next_trans if adds else trans[lane]
+                        stop[lane] = k + 1 if adds else stop[lane]
+                        n_live += live[lane]
+                    for d in range(dim):
+                        f = tfeat[k, d]
+                        for lane in range(LANES):
+                            acc[d, lane] += weight[lane] * f
+                    if n_live == 0:
+                        break
                 if n_live == 0:
                     break
             for lane in range(n_lanes):
@@ -293,7 +334,6 @@ def _backward_tiles(
 ):  # pragma: no cover - compiled
     n_slots = isect_grads.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
-    pow2 = _pow2_table()
     for tile in prange(n_tiles):
         dim = tile_dims[tile]  # the forward's channels: the others are constant 0 here, with no gradient
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
@@ -304,12 +344,15 @@ def _backward_tiles(
         x_lo, y_lo = tx * tile_size, ty * tile_size
         x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
         n_lanes = x_hi - x_lo
-        table = np.empty((end - start, _N_COLS), dtype=np.float32)
-        tfeat = np.empty((end - start, dim), dtype=np.float32)
+        n_k = end - start
+        table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
+        tfeat = np.empty((n_k, dim), dtype=np.float32)
         _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, table, tfeat)
+        misses = np.empty(CULL_BLOCK, dtype=np.int32)
+        hits = np.empty(CULL_BLOCK, dtype=np.int64)
         # gradient sums per (tile, Gaussian): each row adds its lane sums once (per-lane accumulators cost
         # 16x the read-modify-write traffic, measured ~25% of the backward)
-        kgrads = np.zeros((end - start, n_slots), dtype=np.float32)
+        kgrads = np.zeros((n_k, n_slots), dtype=np.float32)
         trans = np.empty(LANES, dtype=np.float32)
         trans_final = np.empty(LANES, dtype=np.float32)
         g_alpha_out = np.empty(LANES, dtype=np.float32)
@@ -346,51 +389,52 @@ def _backward_tiles(
             for d in range(dim):
                 for lane in range(LANES):
                     behind[d, lane] = 0.0
-            for k in range(k_end - 1, -1, -1):
-                if _row_misses(table, k, pyc, n_lanes):
-                    continue
-                mx, dy = table[k, _MX], table[k, _MY] - pyc
-                a, b, c, o, threshold = table[k, _CA], table[k, _CB], table[k, _CC], table[k, _OP], table[k, _TH]
-                c_term = f32(-0.5) * c * dy * dy
-                for lane in range(LANES):  # same alpha, bit for bit, as the forward pass
-                    dx = mx - xs[lane]
-                    power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
-                    gauss[lane] = _exp_neg(min(max(power, f32(_POWER_FLOOR)), f32(0.0)), pow2)
-                    alpha = min(f32(ALPHA_MAX), o * gauss[lane])
-                    hit = (k < stop[lane]) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
-                    mask[lane] = f32(1.0) if hit else f32(0.0)
-                    inv[lane] = f32(1.0) / (f32(1.0) - alpha)
-                    trans[lane] = trans[lane] * inv[lane] if hit else trans[lane]  # transmittance in front of k
-                    weight[lane] = alpha * trans[lane] * mask[lane]
-                    # d(out)/d(alpha_k) from 1 - T_final; feature terms are added below
-                    g_a[lane] = g_alpha_out[lane] * trans_final[lane] * inv[lane]
-                for d in range(dim):
-                    f = tfeat[k, d]
-                    sf = f32(0.0)
+            for k0 in range((k_end - 1) // CULL_BLOCK * CULL_BLOCK, -1, -CULL_BLOCK):
+                n_hits = _cull_block(table, k0, k_end, pyc, n_lanes, misses, hits)
+                for i in range(n_hits - 1, -1, -1):
+                    k = hits[i]
+                    mx, dy = table[_MX, k], table[_MY, k] - pyc
+                    a, b, c, o, threshold = table[_CA, k], table[_CB, k], table[_CC, k], table[_OP, k], table[_TH, k]
+                    c_term = f32(-0.5) * c * dy * dy
+                    for lane in range(LANES):  # same alpha, bit for bit, as the forward pass
+                        dx = mx - xs[lane]
+                        power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
+                        gauss[lane] = _exp_neg(min(max(power, f32(_POWER_FLOOR)), f32(0.0)))
+                        alpha = min(f32(ALPHA_MAX), o * gauss[lane])
+                        hit = (k < stop[lane]) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
+                        mask[lane] = f32(1.0) if hit else f32(0.0)
+                        inv[lane] = f32(1.0) / (f32(1.0) - alpha)
+                        trans[lane] = trans[lane] * inv[lane] if hit else trans[lane]  # transmittance in front of k
+                        weight[lane] = alpha * trans[lane] * mask[lane]
+                        # d(out)/d(alpha_k) from 1 - T_final; feature terms are added below
+                        g_a[lane] = g_alpha_out[lane] * trans_final[lane] * inv[lane]
+                    for d in range(dim):
+                        f = tfeat[k, d]
+                        sf = f32(0.0)
+                        for lane in range(LANES):
+                            g_a[lane] += g_out[d, lane] * (trans[lane] * f - behind[d, lane] * inv[lane])
+                            sf += g_out[d, lane] * weight[lane]
+                            behind[d, lane] += f * weight[lane]
+                        kgrads[k, _N_PARAMS + d] += sf
+                    # lane sums of this row's gradients: reductions the compiler vectorises under `reassoc`
+                    s0 = s1 = s2 = s3 = s4 = s5 = f32(0.0)
                     for lane in range(LANES):
-                        g_a[lane] += g_out[d, lane] * (trans[lane] * f - behind[d, lane] * inv[lane])
-                        sf += g_out[d, lane] * weight[lane]
-                        behind[d, lane] += f * weight[lane]
-                    kgrads[k, _N_PARAMS + d] += sf
-                # lane sums of this row's gradients: reductions the compiler vectorises under `reassoc`
-                s0 = s1 = s2 = s3 = s4 = s5 = f32(0.0)
-                for lane in range(LANES):
-                    dx = mx - xs[lane]
-                    raw = o * gauss[lane]
-                    scale = mask[lane] if raw <= f32(ALPHA_MAX) else f32(0.0)  # the alpha clamp passes no gradient
-                    g_power = raw * g_a[lane] * scale
-                    s5 += gauss[lane] * g_a[lane] * scale
-                    s0 -= g_power * (a * dx + b * dy)
-                    s1 -= g_power * (c * dy + b * dx)
-                    s2 -= g_power * f32(0.5) * dx * dx
-                    s3 -= g_power * dx * dy
-                    s4 -= g_power * f32(0.5) * dy * dy
-                kgrads[k, 0] += s0
-                kgrads[k, 1] += s1
-                kgrads[k, 2] += s2
-                kgrads[k, 3] += s3
-                kgrads[k, 4] += s4
-                kgrads[k, 5] += s5
+                        dx = mx - xs[lane]
+                        raw = o * gauss[lane]
+                        scale = mask[lane] if raw <= f32(ALPHA_MAX) else f32(0.0)  # the alpha clamp passes no gradient
+                        g_power = raw * g_a[lane] * scale
+                        s5 += gauss[lane] * g_a[lane] * scale
+                        s0 -= g_power * (a * dx + b * dy)
+                        s1 -= g_power * (c * dy + b * dx)
+                        s2 -= g_power * f32(0.5) * dx * dx
+                        s3 -= g_power * dx * dy
+                        s4 -= g_power * f32(0.5) * dy * dy
+                    kgrads[k, 0] += s0
+                    kgrads[k, 1] += s1
+                    kgrads[k, 2] += s2
+                    kgrads[k, 3] += s3
+                    kgrads[k, 4] += s4
+                    kgrads[k, 5] += s5
         for k in range(end - start):
             for j in range(n_slots):
                 isect_grads[start + k, j] = kgrads[k, j]

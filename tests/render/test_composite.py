@@ -208,3 +208,28 @@ def test_feature_pixels_of_the_wrong_size_are_named():
     with pytest.raises(ValueError, match=r"feature_pixels must be \[H, W\] = \[10, 20\]"):
         rasterize(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales,
                   features=scene.features, feature_pixels=torch.ones(20, 10, dtype=torch.bool))
+
+
+def test_kernel_exp_matches_numpy_over_its_domain():
+    """The compositor's branch-free exp (polynomial times 2^n built from its bits) against numpy's, on its
+    whole domain [-5.6, 0]: alpha and its gradient both rest on it."""
+    import numpy as np
+    from numba import njit
+
+    from pidg.render.rasterize_cpu import _exp_neg
+
+    @njit
+    def exp_all(x):
+        out = np.empty_like(x)
+        for i in range(x.shape[0]):
+            out[i] = _exp_neg(x[i])
+        return out
+
+    x = np.linspace(-5.6, 0.0, 200_001).astype(np.float32)
+    approx = exp_all(x).astype(np.float64)
+    exact = np.exp(x.astype(np.float64))
+    assert np.max(np.abs(approx - exact) / exact) < 5e-7
+    # the exact powers of two at the reduction's break points: -k ln 2 -> 2^-k
+    k = np.arange(0, 9)
+    at_powers = exp_all((-k * math.log(2.0)).astype(np.float32)).astype(np.float64)
+    assert np.allclose(at_powers, 2.0 ** -k, rtol=5e-7, atol=0)
