@@ -201,8 +201,8 @@ def _project_forward(means, quats, scales, opacities, coeffs, degree, cam, eps2d
             r2 = max(f32(2.0) * math.log(max(o, f32(ALPHA_MIN)) / f32(ALPHA_MIN)), f32(0.0)) * f32(1.0 + 1e-4)
             hx, hy = math.sqrt(r2 * max(a, f32(0.0))), math.sqrt(r2 * max(c, f32(0.0)))
             keep = keep and (u + hx > 0) and (u - hx < width) and (v + hy > 0) and (v - hy < height) and hx > 0 and hy > 0
-            radii[i, 0] = np.int32(min(math.ceil(hx), 2**30)) if keep else np.int32(0)
-            radii[i, 1] = np.int32(min(math.ceil(hy), 2**30)) if keep else np.int32(0)
+            radii[i, 0] = np.int32(math.ceil(min(hx, f32(2**30)))) if keep else np.int32(0)  # (inf: a huge Gaussian)
+            radii[i, 1] = np.int32(math.ceil(min(hy, f32(2**30)))) if keep else np.int32(0)
             if degree >= 0:
                 dx, dy, dz = mx - cam[_CENTRE], my - cam[_CENTRE + 1], mz - cam[_CENTRE + 2]
                 inv_len = f32(1.0) / max(math.sqrt(dx * dx + dy * dy + dz * dz), f32(1e-12))
@@ -212,6 +212,17 @@ def _project_forward(means, quats, scales, opacities, coeffs, degree, cam, eps2d
                     for k in range(n_basis):
                         s += basis[k] * coeffs[i, k, ch]
                     rgb[i, ch] = max(s + f32(0.5), f32(0.0))
+
+
+@njit(cache=True, inline="always")
+def _no_gradient_reaches(i, g_means2d, g_conics, g_depths, g_cov2d, g_rgb):  # pragma: no cover - compiled
+    """True when every output gradient of Gaussian i is zero."""
+    zero = g_depths[i] == f32(0.0)
+    for k in range(2):
+        zero = zero and g_means2d[i, k] == f32(0.0)
+    for k in range(3):
+        zero = zero and g_conics[i, k] == f32(0.0) and g_cov2d[i, k] == f32(0.0) and g_rgb[i, k] == f32(0.0)
+    return zero
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -230,6 +241,14 @@ def _project_backward(means, quats, scales, coeffs, degree, cam, eps2d, g_means2
         g_basis = np.empty(16, dtype=np.float32)
         g_unit = np.empty(3, dtype=np.float32)
         for i in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            if _no_gradient_reaches(i, g_means2d, g_conics, g_depths, g_cov2d, g_rgb):
+                # (culled or unseen: exactly zero, without evaluating a Jacobian that may overflow float32)
+                for k in range(3):
+                    grad_means[i, k] = f32(0.0)
+                    grad_scales[i, k] = f32(0.0)
+                for k in range(4):
+                    grad_quats[i, k] = f32(0.0)
+                continue
             # ---- recompute the forward's intermediates
             mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
             x, y, z, in_depth, inv_z, tx_raw, ty_raw, tan_x, tan_y, a0s, b0s, a1s, b1s = _view_point(cam, mx, my, mz)
@@ -253,12 +272,13 @@ def _project_backward(means, quats, scales, coeffs, degree, cam, eps2d, g_means2
             ga, gb, gc = g_cov2d[i, 0], g_cov2d[i, 1], g_cov2d[i, 2]
             k0, k1, k2 = g_conics[i, 0], g_conics[i, 1], g_conics[i, 2]
             if det > f32(0.0):
+                # dQ = -Q dS Q for Q = S^-1 = [[q0, q1], [q1, q2]]: written with the conic itself, which stays finite
+                # (-> 0) where det overflows float32 (a huge Gaussian), instead of c^2 / det^2 = inf * 0 = NaN
                 inv_det = f32(1.0) / det
-                inv_det2 = inv_det * inv_det
-                # conic0 = c/D, conic1 = -b/D, conic2 = a/D with dD/da = c, dD/db = -2b, dD/dc = a
-                ga += k0 * (-c * c * inv_det2) + k1 * (b * c * inv_det2) + k2 * (inv_det - a * c * inv_det2)
-                gb += k0 * (f32(2.0) * b * c * inv_det2) + k1 * (-inv_det - f32(2.0) * b * b * inv_det2) + k2 * (f32(2.0) * a * b * inv_det2)
-                gc += k0 * (inv_det - a * c * inv_det2) + k1 * (a * b * inv_det2) + k2 * (-a * a * inv_det2)
+                q0, q1, q2 = c * inv_det, -b * inv_det, a * inv_det
+                ga -= k0 * q0 * q0 + k1 * q0 * q1 + k2 * q1 * q1
+                gb -= f32(2.0) * k0 * q0 * q1 + k1 * (q0 * q2 + q1 * q1) + f32(2.0) * k2 * q1 * q2
+                gc -= k0 * q1 * q1 + k1 * q1 * q2 + k2 * q2 * q2
             else:  # det replaced by 1: conic = (c, -b, a)
                 ga += k2
                 gb -= k1

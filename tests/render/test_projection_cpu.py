@@ -98,3 +98,32 @@ def test_rasterize_on_the_cpu_backend_matches_the_torch_backend_with_gradients()
     torch.testing.assert_close(mb, ma, rtol=1e-3, atol=1e-4 * float(ma.abs().max()))  # densification's statistic
     for x, y in zip(gb, ga):
         torch.testing.assert_close(x, y, rtol=1e-3, atol=1e-3 * float(y.abs().max()))
+
+
+def test_a_huge_gaussian_keeps_finite_gradients():
+    """A Gaussian scaled ~1e8 (a deformation that ran away early in a run) overflows float32's det(cov2d): its
+    conic is 0 and its radius the cap. Its gradients must stay finite: exactly zero where none reaches it (that
+    case returned NaN and rolled runs back), and the float64 reference's where its centre is supervised."""
+    cam = camera()
+    means = torch.tensor([[0.0, 0.1, 0.0], [0.2, 0.0, 0.1]])
+    quats = torch.tensor([[0.9, 0.1, -0.3, 0.2], [1.0, 0.0, 0.0, 0.0]])
+    scales = torch.tensor([[1e8, 3e7, 6e8], [0.1, 0.1, 0.1]])
+    opacities = torch.tensor([0.5, 0.5])
+    colors = torch.rand(2, 3, generator=torch.Generator().manual_seed(0))
+    params = [t.clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+    proj, _ = project_and_shade_cpu(*params, cam, None)
+    assert torch.isfinite(proj.conics).all() and proj.radii[0].tolist() == [2**30, 2**30]
+    (proj.means2d[1].sum() + proj.conics[1].sum()).backward()  # only the ordinary Gaussian is supervised
+    for p in params[:3]:
+        assert torch.isfinite(p.grad).all()
+        assert (p.grad[0] == 0).all()
+
+    grads = []
+    for fn, dtype in ((reference, torch.float64), (project_and_shade_cpu, torch.float32)):
+        params = [t.to(dtype).clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
+        proj, _ = fn(*params, cam, None)
+        (proj.means2d[0].sum() + proj.depths[0] + proj.conics[0].sum()).backward()
+        grads.append([p.grad[0].double() for p in params[:3]])
+    for ref, kernel in zip(*grads):
+        assert torch.isfinite(kernel).all()
+        torch.testing.assert_close(kernel, ref, rtol=1e-4, atol=1e-6)
