@@ -170,6 +170,28 @@ def test_grid4d_warp_convention():
     assert torch.allclose(frozen(means, quats, log_scales, 0.5).quats, quats)
 
 
+def test_grid4d_bounds_on_translation_and_scale_change():
+    """max_translation / max_log_scale_change: T = b tanh(T_raw / b), ds = b tanh(ds_raw / b) -- a raw head far
+    beyond the bound gives the bound, a small one passes almost unchanged; rotation heads are untouched."""
+    bounded = dataclasses.replace(SMALL_GRID4D, decoder_depth=0, max_translation=0.5, max_log_scale_change=2.0)
+    model, free = Grid4D(bounded, BOUNDS), Grid4D(dataclasses.replace(bounded, max_translation=0.0, max_log_scale_change=0.0), BOUNDS)
+    means, quats, log_scales = canonical(20)
+    centre, half = torch.tensor(BOUNDS.centre), torch.tensor(BOUNDS.half_extent)
+    for shift, ds in ((torch.tensor([40.0, -40.0, 0.01]), 30.0), (torch.tensor([0.02, -0.01, 0.0]), 0.05)):
+        for m in (model, free):
+            with torch.no_grad():
+                m.head_warp.bias.copy_(torch.cat([torch.zeros(4), shift]))
+                m.head_scale.bias.fill_(ds)
+        out, raw = model(means, quats, log_scales, 0.5), free(means, quats, log_scales, 0.5)
+        expected_t = 0.5 * torch.tanh(shift / 0.5)
+        assert torch.allclose(out.means - means, half * expected_t, atol=1e-5)
+        assert torch.allclose(out.log_scales - log_scales, torch.full_like(log_scales, 2.0 * math.tanh(ds / 2.0)), atol=1e-5)
+        assert torch.allclose(out.quats, raw.quats)
+        if ds < 1.0:  # small motions: as without the bound, to the tanh's cubic term
+            assert torch.allclose(out.means, raw.means, atol=2e-3) and torch.allclose(out.log_scales, raw.log_scales, atol=1e-4)
+    assert (out.means - means).abs().max() < 0.5 * half.max() + 1e-6
+
+
 def test_quaternion_helpers_agree_with_the_renderer():
     gen = torch.Generator().manual_seed(0)
     a, b = torch.nn.functional.normalize(torch.randn(10, 4, generator=gen), dim=-1), torch.randn(10, 4, generator=gen)

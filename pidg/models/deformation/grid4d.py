@@ -60,7 +60,7 @@ from pidg.models.deformation.hash_grid import (
     HashGrid,
     HashGridConfig,
 )
-from pidg.models.deformation.warp import apply_warp
+from pidg.models.deformation.warp import apply_warp, split_heads
 
 
 @dataclass
@@ -99,6 +99,11 @@ class Grid4DConfig:
     """Weight of the spatial grid's smoothness term."""
     reg_temporal_weight: Annotated[float, NON_NEGATIVE] = 1.0
     """Weight of the temporal grids' smoothness term."""
+    max_translation: Annotated[float, NON_NEGATIVE] = 0.0
+    """Soft bound on the warp's translation T, in box half-extents: T = b tanh(T_raw / b) (0: unbounded). Early
+    in a run the field can push Gaussians tens of half-extents away, and at fine temporal grids it runs away."""
+    max_log_scale_change: Annotated[float, NON_NEGATIVE] = 0.0
+    """Soft bound on ds, the change of log-scale: ds = b tanh(ds_raw / b) (0: unbounded)."""
     backend: HashGridBackend = "auto"
     """Implementation of the hash encoding and of the warp (``warp.py``): numba kernels on float32 CPU tensors, the
     torch references otherwise (CUDA); cpu or torch force one."""
@@ -201,7 +206,16 @@ class Grid4D(DeformationModel):
         """The warp (w, T), dr and ds heads' outputs [N, 14] (``warp.WARP_COLUMNS``) as one matrix product (a third
         of the launches and of the backward's passes over h)."""
         heads = (self.head_warp, self.head_rotation, self.head_scale)
-        return F.linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
+        out = F.linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
+        bound_t, bound_s = self.config.max_translation, self.config.max_log_scale_change
+        if not (bound_t or bound_s):
+            return out
+        w, translation, dr, ds = split_heads(out)
+        if bound_t:
+            translation = bound_t * torch.tanh(translation / bound_t)
+        if bound_s:
+            ds = bound_s * torch.tanh(ds / bound_s)
+        return torch.cat([w, translation, dr, ds], dim=-1)
 
     # -- regulariser --------------------------------------------------------------------------------------------
 
