@@ -104,7 +104,12 @@ def test_presets_follow_the_device_and_the_dataset(tmp_path):
     assert (cpu_dnerf.optim.iterations, cpu_dnerf.densify.start, cpu_dnerf.densify.stop, cpu_dnerf.densify.opacity_reset_every,
             cpu_dnerf.gaussians.random_init_points, cpu_dnerf.densify.max_gaussians) == (12_000, 300, 5000, 2000, 20_000, 30_000)
     # ... and finer temporal grids along t (D-NeRF has up to 200 training times); the other grid settings stay the preset's
-    assert cpu_dnerf.deformation.grid4d.temporal_grid.finest_resolution == (32, 32, 32)
+    assert cpu_dnerf.deformation.grid4d.temporal_grid.finest_resolution == (32, 32, 64)
+    # ... with the warp soft-bounded there (its early excursions); elsewhere unbounded, as Grid4D
+    g_dnerf, g_cpu = cpu_dnerf.deformation.grid4d, cpu.deformation.grid4d
+    assert (g_dnerf.max_translation, g_dnerf.max_log_scale_change) == (1.0, 2.0)
+    g_paper = paper["dnerf"].deformation.grid4d
+    assert (g_cpu.max_translation, g_cpu.max_log_scale_change, g_paper.max_translation, g_paper.max_log_scale_change) == (0.0,) * 4
     assert cpu.deformation.grid4d.temporal_grid.finest_resolution == (32, 32, 16)
     assert dataclasses.replace(cpu_dnerf.deformation.grid4d.temporal_grid, finest_resolution=(32, 32, 16)) == cpu.deformation.grid4d.temporal_grid
     assert apply_preset(TrainConfig(device="cpu"), "cpu", "pidg").densify == TrainConfig().densify
