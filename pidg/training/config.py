@@ -183,14 +183,14 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 #: reset at 1000, whose pruning took 22k Gaussians down to 4k and left bouncingballs blurred (33.4 dB on val; 36.2
 #: with this schedule at 16 temporal cells). Uncapped, lego grew past 120k Gaussians (1.5 it/s): densification stops
 #: adding at 30k. The temporal grids' finest resolution along t was first 32 here (16 elsewhere), chosen on the val
-#: split of all three scenes: D-NeRF scenes have 50-200 training times, and at 16 cells a bouncing ball's position between them
-#: was blurred (val PSNR at 16 / 32 / 64 cells: bouncingballs 36.2 / 39.8 / 38.7, jumpingjacks 34.1 / 34.0 / 31.9,
-#: lego 26.3 / 26.7 / 26.3). 12000 steps rather than 8000 (learning rates over the longer run; densification as
-#: above): val PSNR bouncingballs 39.63 vs 39.75, jumpingjacks 34.98 vs 34.04, lego 26.90 vs 26.67, in 20-26 minutes.
-#: It is 64 cells along t since the warp's translation and log-scale change are soft-bounded (1 box half-extent, e^2): the
-#: field no longer throws Gaussians tens of half-extents away early in a run (what collapsed jumpingjacks at 64 cells
-#: once a NaN stopped rolling it back); val PSNR against 32 cells unbounded: bouncingballs 40.17 vs 39.63 (12000
-#: steps), jumpingjacks 34.61 vs 34.04 and lego 26.69 vs 26.67 (8000 steps).
+#: split of all three scenes: D-NeRF scenes have 50-200 training times, and at 16 cells a bouncing ball's position
+#: between them was blurred (val PSNR at 16 / 32 / 64 cells: bouncingballs 36.2 / 39.8 / 38.7, jumpingjacks 34.1 /
+#: 34.0 / 31.9, lego 26.3 / 26.7 / 26.3). 12000 steps rather than 8000 (learning rates over the longer run;
+#: densification as above): val PSNR bouncingballs 39.63 vs 39.75, jumpingjacks 34.98 vs 34.04, lego 26.90 vs 26.67,
+#: in 20-26 minutes. It is 64 cells along t since the warp's translation and log-scale change are soft-bounded (1 box
+#: half-extent, e^2): the field no longer throws Gaussians tens of half-extents away early in a run (what collapsed
+#: jumpingjacks at 64 cells once a NaN stopped rolling it back); val PSNR against 32 cells unbounded: bouncingballs
+#: 40.17 vs 39.63 (12000 steps), jumpingjacks 34.61 vs 34.04 and lego 26.69 vs 26.67 (8000 steps).
 CPU_DNERF_SCHEDULE = {"iterations": 12_000, "densify_start": 300, "densify_stop": 5000, "opacity_reset_every": 2000,
                       "random_init_points": 20_000, "max_gaussians": 30_000, "temporal_finest": (32, 32, 64),
                       "max_translation": 1.0, "max_log_scale_change": 2.0}
@@ -206,9 +206,9 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
     velocity-flow error 1.00 against 1.03 px, x1.30 the step rate); on D-NeRF scenes also a schedule for a CPU's budget
     (``CPU_DNERF_SCHEDULE``: 12000 steps, densification 300-5000 up to 30k Gaussians, opacity reset every 2000, 20k
     random points, temporal grids up to 64 cells along t, the warp's translation and log-scale change soft-bounded).
-    Their resolutions only grow from 8 to 32 (16 along t), so 32 levels
-    sit 4.6% apart; 16 levels (9% apart) cover the same range at half the lookups, and the temporal grids were the
-    largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
+    Their resolutions only grow from 8 to 32 (16 along t), so 32 levels sit 4.6% apart; 16 levels (9% apart) cover
+    the same range at half the lookups (up to 64 along t on D-NeRF: 6.9% and 14.9% apart), and the temporal grids were
+    the largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
     "paper": the published model sizes (the defaults) and schedule (paper Sec. 5 and supp. A, D): 50k iterations
     on synthetic scenes (``layout`` dnerf or pidg) and 40k on real ones (hypernerf), densification until 30k, the
     network learning rates x0.1 every 20k steps, decoder depth 1 on real scenes, and the 0.015 scale threshold for
