@@ -18,11 +18,11 @@ from pidg.data.scene import Frame, SceneData
 from pidg.device import Device, describe, rasterizer_for, resolve_device
 from pidg.evaluation.evaluate import evaluate_model
 from pidg.evaluation.future import evaluate_future
-from pidg.evaluation.motion import MotionEvaluation, evaluate_motion
+from pidg.evaluation.motion import MotionEvaluation, evaluate_flow_target, evaluate_motion
 from pidg.evaluation.images import colorize_scalar, save_png
 from pidg.evaluation.video import write_video
 from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images
-from pidg.flow import FlowConfig, open_flow_cache
+from pidg.flow import FlowCache, FlowConfig, open_flow_cache
 from pidg.metrics import NetName, lpips_weights_available
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.training.config import TrainConfig, apply_preset
@@ -81,18 +81,23 @@ def evaluate_run(
         future = evaluate_future(run.model, run.scene.frames(split), t_last, run.run_dir / f"eval_{split}_future", nets)
         result["future"] = {name: {"mean": r["mean"], "t_last": t_last} for name, r in future.items()}
     if truth is not None:
-        result["motion_gt"] = evaluate_motion_and_save(run.model, run.scene, run.run_dir, split, truth, motion_radius)
+        result["motion_gt"] = evaluate_motion_and_save(run.model, run.scene, run.run_dir, split, truth, motion_radius, run.config.flow)
     return result
 
 
 def evaluate_motion_and_save(
     model: DynamicGaussians, scene: SceneData, run_dir: Path, split: str = "test", truth: MotionGroundTruth | None = None,
-    radius: float | None = None,
+    radius: float | None = None, flow: FlowConfig | None = None, flow_cache: FlowCache | None = None,
 ) -> MotionEvaluation:
     """The model's motion on a split against the scene's ground-truth motion (``truth``, else read from the
-    dataset folder; :mod:`pidg.evaluation.motion`), written to RUN/eval_SPLIT/motion_gt.json."""
+    dataset folder; :mod:`pidg.evaluation.motion`), written to RUN/eval_SPLIT/motion_gt.json. With ``flow`` (the
+    run's flow settings) the training pairs' flow target is scored too, from ``flow_cache`` or else the scene's
+    optical-flow cache (computed where missing)."""
     truth = truth if truth is not None else read_motion_gt(scene.root)
     evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius)
+    if flow is not None:
+        cache = flow_cache or open_flow_cache(scene, flow, Path(run_dir) / "flow_cache", progress=False)
+        evaluation.target = evaluate_flow_target(model, cache, flow, truth)
     out_dir = Path(run_dir) / f"eval_{split}"
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "motion_gt.json").write_text(json.dumps(evaluation.to_dict(), indent=2))

@@ -215,7 +215,9 @@ def _train_and_evaluate(job: Job) -> list[dict[str, Any]]:
         metrics = evaluate_and_save(model, trainer.scene, config.output.dir, "test", nets, trainer.step)
         motion = {}
         if has_motion_gt(config.data.root):  # scored against the truth too (RUN/eval_test/motion_gt.json)
-            motion = evaluate_motion_and_save(model, trainer.scene, config.output.dir, "test").columns()
+            motion = evaluate_motion_and_save(
+                model, trainer.scene, config.output.dir, "test", flow=config.flow, flow_cache=trainer.flow_cache
+            ).columns()
         return [{**common, **metrics["mean"], "render_fps": metrics["render_fps"], **motion}]
     t_last = max(f.time for f in trainer.scene.train)
     results = evaluate_future(
@@ -262,7 +264,8 @@ EFFICIENCY = (("train_minutes", "minutes", ".1f"), ("iterations_per_second", "it
 #: Motion against ground-truth motion (scenes that carry it: pidg.evaluation.motion), mean over those scenes.
 MOTION = (("gt_motion_flow_epe", "motion-flow EPE px", ".2f"), ("gt_velocity_flow_epe", "velocity-flow EPE px", ".2f"),
           ("gt_zero_motion_epe", "zero-motion EPE px", ".2f"), ("gt_velocity_rel_deformation", "3D velocity rel. error, deformation", ".3f"),
-          ("gt_velocity_rel_field", "3D velocity rel. error, v", ".3f"), ("gt_coverage", "vertex coverage", ".3f"))
+          ("gt_velocity_rel_field", "3D velocity rel. error, v", ".3f"), ("gt_coverage", "vertex coverage", ".3f"),
+          ("gt_target_flow_epe", "flow-target EPE px (training pairs)", ".2f"))
 SSIM_NAMES = {"zeros": "SSIM: zero-padded Gaussian window (the 3DGS family's tables)",
               "valid": "SSIM: valid filtering (Wang et al. 2004, skimage)"}
 

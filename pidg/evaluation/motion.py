@@ -23,6 +23,12 @@ ground-truth frame interval, one-sided at 0 and 1) and the material field's v co
 (:func:`velocity_per_dataset_time`). Reported: mean |v - v_gt| (per unit of dataset time, and x frame_interval: per
 frame), the mean relative error |v - v_gt| / |v_gt| over matched vertices with |v_gt| > 0 and at least
 ``speed_floor`` (default 10 % of the mean true speed), and the zero-velocity baseline (mean |v_gt|; relative error 1).
+
+**The flow target (training pairs).** What LPFM pulls the model's flows towards, the motion-flow target of each
+training pair (:func:`pidg.flow.model_flow_target`: the optical flow minus the camera flow of frame t+1's depth, the
+dataset's or the model's own render, inside the motion mask), scored against the true flow of frame t on the pixels
+it supervises that the truth calls dynamic: the best the flow loss alone can teach (:func:`evaluate_flow_target`).
+Pairs whose t+1 is not t + ``frame_interval`` (a held-out image between them) are skipped.
 """
 from __future__ import annotations
 
@@ -36,6 +42,7 @@ from torch import Tensor
 
 from pidg.data.motion_gt import MotionGroundTruth, composited_flow, projected_displacement, resize_flow
 from pidg.data.scene import DatasetError, Frame
+from pidg.flow import FlowCache, FlowConfig, FlowTarget, model_flow_target
 from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.time_axis import TimeAxis
@@ -96,6 +103,22 @@ class VelocityScores:
 
 
 @dataclass
+class TargetScores:
+    """The training pairs' motion-flow target against the true flow of their first frame (pixels), pooled over the
+    scored pairs. Scored pixels: supervised by the target, and a dynamic surface in the truth."""
+
+    pairs: int
+    pixels: int
+    depth: str  # whose depth compensated the camera's motion: "dataset" or "model" (the run's own render at t+1)
+    target_epe: float | None  # mean |target - flow_gt| on the scored pixels
+    zero_motion_epe: float | None  # mean |flow_gt| there
+    coverage: float | None  # scored pixels / true dynamic surface pixels of the scored pairs
+    off_dynamic_pixels: int  # supervised pixels the truth calls static or background
+    off_dynamic_flow: float | None  # mean |target| on them (the truth there: 0 or no surface)
+    skipped: list[str] = field(default_factory=list)  # pairs (first frame) spanning more than one frame interval
+
+
+@dataclass
 class MotionEvaluation:
     """Everything :func:`evaluate_motion` measured (``to_dict`` -> RUN/eval_SPLIT/motion_gt.json)."""
 
@@ -106,6 +129,7 @@ class MotionEvaluation:
     velocity: VelocityScores
     per_frame: list[dict[str, Any]]
     units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
+    target: TargetScores | None = None  # the training pairs' flow target (:func:`evaluate_flow_target`)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -119,6 +143,7 @@ class MotionEvaluation:
             "gt_velocity_rel_deformation": self.velocity.deformation_rel,
             "gt_velocity_rel_field": self.velocity.field_rel,
             "gt_coverage": self.velocity.coverage,
+            "gt_target_flow_epe": None if self.target is None else self.target.target_epe,
         }
 
     def summary(self) -> str:
@@ -129,6 +154,8 @@ class MotionEvaluation:
             f"velocity-flow EPE {_px(f.velocity_flow_epe)}, zero motion {_px(f.zero_motion_epe)}; 3D velocity "
             f"(coverage {_pct(v.coverage)} within {v.radius:.3g} world units): relative error deformation {_num(v.deformation_rel)}, "
             f"field v {_num(v.field_rel)}, zero {_num(v.zero_rel)}"
+            + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
+               f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
         )
 
 
@@ -195,6 +222,54 @@ def model_flows(model: DynamicGaussians, camera: Camera, t: float, t1: float) ->
 
 def _epe_sum(flow: Tensor | None, gt: Tensor, mask: Tensor) -> float | None:
     return None if flow is None else float((flow - gt).norm(dim=-1)[mask].double().sum())
+
+
+# ---- the flow target --------------------------------------------------------------------------------------------
+def target_flow_sums(target: FlowTarget, flow_gt: Tensor, dynamic: Tensor) -> dict[str, float]:
+    """Sums over one pair: |target - flow_gt| and |flow_gt| on the scored pixels (supervised, true dynamic surface),
+    their count, the true dynamic surface's count, and |target| and the count of supervised pixels off it.
+    ``flow_gt`` [H, W, 2] (NaN: no surface) and ``dynamic`` [H, W] at the target's size."""
+    surface = dynamic & torch.isfinite(flow_gt).all(-1)
+    scored = target.valid & surface
+    off = target.valid & ~surface
+    return {
+        "error": float((target.flow - flow_gt).norm(dim=-1)[scored].double().sum()),
+        "zero": float(flow_gt.norm(dim=-1)[scored].double().sum()),
+        "pixels": float(scored.sum()),
+        "dynamic": float(surface.sum()),
+        "off_flow": float(target.flow.norm(dim=-1)[off].double().sum()),
+        "off_pixels": float(off.sum()),
+    }
+
+
+@torch.no_grad()
+def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: FlowConfig, truth: MotionGroundTruth) -> TargetScores | None:
+    """The motion-flow target of every training pair of ``cache`` (built as training builds it, from frame t+1's
+    dataset depth or this model's render) against the truth; None for the total-flow target (``config.target``),
+    which holds the camera's motion too."""
+    if config.target != "motion":
+        return None
+    sums = dict.fromkeys(("error", "zero", "pixels", "dynamic", "off_flow", "off_pixels"), 0.0)
+    scored, skipped, depth = 0, [], "dataset"
+    for k in range(len(cache)):
+        pair = cache.pair(k)
+        gt = truth.frame_flow(pair.frame0.name)
+        if abs(gt.next_time - pair.frame1.time) > _TIME_TOL:
+            skipped.append(pair.frame0.name)
+            continue
+        target, rendered = model_flow_target(model, pair, None, config)
+        depth = "model" if rendered is not None else depth
+        flow_gt, dynamic = resize_flow(torch.from_numpy(gt.flow), torch.from_numpy(gt.dynamic), (pair.frame0.width, pair.frame0.height))
+        for key, value in target_flow_sums(target, flow_gt.to(target.flow.device), dynamic.to(target.flow.device)).items():
+            sums[key] += value
+        scored += 1
+    n = sums["pixels"]
+    return TargetScores(
+        pairs=scored, pixels=int(n), depth=depth,
+        target_epe=sums["error"] / n if n else None, zero_motion_epe=sums["zero"] / n if n else None,
+        coverage=n / sums["dynamic"] if sums["dynamic"] else None, off_dynamic_pixels=int(sums["off_pixels"]),
+        off_dynamic_flow=sums["off_flow"] / sums["off_pixels"] if sums["off_pixels"] else None, skipped=skipped,
+    )
 
 
 # ---- 3D velocity --------------------------------------------------------------------------------------------------

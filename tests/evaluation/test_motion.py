@@ -15,7 +15,15 @@ from torch import Tensor, nn
 
 from pidg.data.motion_gt import FrameFlow, MotionObject, VertexMotion, read_motion_gt, write_frame_flow, write_motion_gt
 from pidg.data.scene import DatasetError, Frame
-from pidg.evaluation.motion import RADIUS_FRACTION, default_radius, evaluate_motion, velocity_per_dataset_time
+from pidg.evaluation.motion import (
+    RADIUS_FRACTION,
+    default_radius,
+    evaluate_flow_target,
+    evaluate_motion,
+    target_flow_sums,
+    velocity_per_dataset_time,
+)
+from pidg.flow import FlowCache, FlowConfig, FlowTarget
 from pidg.models.deformation.base import DeformationModel, DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.gaussians import GaussianModel
@@ -135,7 +143,9 @@ def test_matching_truth_gives_zero_error_and_zero_motion_gives_the_flow_size(tmp
     assert data["flow"]["pixels"] == SCORED_PIXELS and "world units per unit of dataset time" in data["units"]["velocity"]
     assert [r["view"] for r in data["per_frame"]] == ["test/r_0000", "test/r_0001"]
     assert set(result.columns()) == {"gt_motion_flow_epe", "gt_velocity_flow_epe", "gt_zero_motion_epe",
-                                     "gt_velocity_rel_deformation", "gt_velocity_rel_field", "gt_coverage"}
+                                     "gt_velocity_rel_deformation", "gt_velocity_rel_field", "gt_coverage",
+                                     "gt_target_flow_epe"}
+    assert result.target is None and result.columns()["gt_target_flow_epe"] is None
     assert "motion-flow EPE 0.000 px" in result.summary()
 
 
@@ -203,6 +213,63 @@ def test_frames_past_the_recording_are_skipped_and_a_missing_flow_is_named(tmp_p
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# the flow target of the training pairs against the truth
+# ---------------------------------------------------------------------------------------------------------------
+def test_target_sums_count_only_supervised_true_dynamic_surface():
+    flow_gt = torch.zeros(4, 5, 2)
+    flow_gt[..., 0] = 2.0
+    flow_gt[0] = float("nan")  # row 0: no surface in the truth
+    dynamic = torch.ones(4, 5, dtype=torch.bool)
+    dynamic[:, 0] = False  # column 0: static in the truth
+    target_flow = flow_gt.nan_to_num(0.0) + torch.tensor([0.0, 1.5])  # off by 1.5 px along y wherever a surface is
+    target_flow[0] = 3.0  # supervised flow where the truth has no surface
+    valid = torch.ones(4, 5, dtype=torch.bool)
+    valid[3] = False  # the target does not supervise row 3
+    sums = target_flow_sums(FlowTarget(target_flow, valid), flow_gt, dynamic)
+    scored = 2 * 4  # rows 1-2, columns 1-4
+    assert sums["pixels"] == scored and sums["dynamic"] == 3 * 4
+    assert sums["error"] == pytest.approx(1.5 * scored) and sums["zero"] == pytest.approx(2.0 * scored)
+    off = 5 + 2  # row 0, and column 0 of rows 1-2
+    assert sums["off_pixels"] == off
+    assert sums["off_flow"] == pytest.approx(5 * math.hypot(3.0, 3.0) + 2 * math.hypot(2.0, 1.5))
+
+
+def _still_camera_cache(tmp_path, flow_px, times, shift=(0.0, 0.0)):
+    """Training frames seen by one still camera, with dataset depth, a constant optical flow ``flow_px`` between
+    consecutive frames (so the motion-flow target is that flow), and a truth that differs from it by ``shift``."""
+    frames = [Frame(CAMERA, t, torch.zeros(H, W, 3, dtype=torch.uint8), name=f"train/r_{i:04d}", depth=torch.full((H, W), Z))
+              for i, t in enumerate(times)]
+    k = len(frames) - 1
+    forward = torch.tensor(flow_px).expand(k, H, W, 2).clone()
+    cache = FlowCache(tmp_path / "cache", frames, forward, -forward, torch.ones(k, H, W, dtype=torch.bool),
+                      torch.ones(k, H, W, dtype=torch.bool))
+    motion = VertexMotion(np.asarray(times, np.float64), np.zeros((len(times), 1, 3), np.float32),
+                          np.zeros((len(times), 1, 3), np.float32), np.zeros((0, 3), np.int64))
+    write_motion_gt(tmp_path, DT, [MotionObject("plane", "rigid", 0, 1)], motion)
+    for frame in frames:
+        flow = np.empty((H, W, 2), np.float32)
+        flow[..., 0], flow[..., 1] = flow_px[0] + shift[0], flow_px[1] + shift[1]
+        write_frame_flow(tmp_path, frame.name, FrameFlow(flow, np.ones((H, W), bool), frame.time, frame.time + DT))
+    return cache, read_motion_gt(tmp_path)
+
+
+def test_flow_target_of_a_still_camera_is_the_optical_flow_and_scores_the_truths_offset(tmp_path):
+    flow_px = (3.0, -4.0)
+    cache, truth = _still_camera_cache(tmp_path, flow_px, (0.25, 0.25 + DT, 0.25 + 3 * DT), shift=(0.6, 0.8))
+    config = FlowConfig(kind="lpfm", mask_dilation=0)
+    scores = evaluate_flow_target(plane_model(None), cache, config, truth)
+    # the second pair spans two frame intervals (a held-out image between): skipped
+    assert scores.pairs == 1 and scores.skipped == ["train/r_0001"] and scores.depth == "dataset"
+    # every pixel moves 5 px (> the 1 px motion threshold): the target supervises every pixel whose flow stays in the
+    # image (3 columns and 4 rows leave it)
+    inside = (W - 3) * (H - 4)
+    assert scores.pixels == inside and scores.coverage == pytest.approx(inside / (H * W)) and scores.off_dynamic_pixels == 0
+    assert scores.target_epe == pytest.approx(1.0, rel=1e-4)  # |(0.6, 0.8)|
+    assert scores.zero_motion_epe == pytest.approx(math.hypot(3.6, -3.2), rel=1e-4)
+    assert evaluate_flow_target(plane_model(None), cache, FlowConfig(kind="lpfm", target="total"), truth) is None
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # pidg eval --motion-gt on a tiny procedural run
 # ---------------------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
@@ -236,6 +303,9 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     for key in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe"):
         assert data["flow"][key] >= 0
     assert 0 <= data["velocity"]["coverage"] <= 1 and data["velocity"]["times"] == 2
+    # the flow target of the 5 training pairs, compensated with the run's own depth (the scene ships none)
+    assert data["target"]["pairs"] == 5 and data["target"]["depth"] == "model" and data["target"]["skipped"] == []
+    assert "flow target (train pairs, model depth)" in lines[0]
     assert (run / "eval_test" / "metrics.json").is_file()
 
 
