@@ -75,6 +75,10 @@ class OptimConfig:
     # larger step than the shared weights.
     material_embedding_lr: Annotated[float, NON_NEGATIVE] = 1e-2
     """Learning rate of the material field's particle-index embedding."""
+    lambda_depth: Annotated[float, NON_NEGATIVE] = 0.0
+    """Weight of a depth loss against the dataset's depth maps (``depth/``, camera z in world units): the mean relative
+    error |d - d_gt| / d_gt of the rendered expected depth over the pixels that have a depth (0: off). A monocular
+    video fixes each surface's depth at a time from one view only; measured depth removes that ambiguity."""
     static_warmup: Annotated[int, NON_NEGATIVE] = 0
     """Steps that train the canonical Gaussians only, before the deformation starts."""
     time_budget_minutes: Annotated[float, POSITIVE] | None = None

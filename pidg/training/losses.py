@@ -10,6 +10,7 @@ checkpoints through ``state_dict``. Adding a term means writing one class here a
 Terms, in the order they are summed (NOTES.md section 9):
   photometric     (1 - lambda_c) L1 + lambda_c D-SSIM, with the 3DGS zero-padded SSIM
   smoothness      the deformation's own regulariser (Grid4D), on the frame-t pass
+  depth           lambda_depth * relative depth error against the dataset's depth maps (``--optim.lambda_depth``)
   cmr             lambda_cmr * L_CMR at the deformed positions (``--physics cmr``)
   lpfm            lambda_lpfm * L_LPFM of the rendered flows against the motion-flow target (``--flow lpfm``)
 """
@@ -153,6 +154,37 @@ class DeformationSmoothness(LossTerm):
         reg = inputs.state.regularization
         reg = reg if reg is not None else render.rgb.new_zeros(())
         return reg, {"deform_reg": float(reg.detach())}
+
+
+def relative_depth_error(render: RenderOutput, depth_gt: Tensor, min_alpha: float = 0.5) -> Tensor:
+    """Mean |d - d_gt| / d_gt of the rendered expected depth d (depth / alpha) over the pixels with a measured depth
+    (d_gt > 0, finite); pixels the render leaves (nearly) empty (alpha < ``min_alpha``) count with d = 0, an error
+    of 1, so the loss also pulls Gaussians onto measured surfaces (zero when no pixel has a depth)."""
+    valid = torch.isfinite(depth_gt) & (depth_gt > 0)
+    if not bool(valid.any()):
+        return render.depth.new_zeros(())
+    d_gt = depth_gt[valid]
+    d = render.depth_normalized()[valid]
+    covered = render.alpha.detach()[valid] >= min_alpha
+    error = torch.where(covered, (d - d_gt).abs() / d_gt, torch.ones_like(d_gt))
+    return error.mean()
+
+
+class DepthLoss(LossTerm):
+    """lambda_depth * :func:`relative_depth_error` of the render against the frame's depth map (datasets with
+    ``depth/``; ``--optim.lambda_depth``)."""
+
+    name = "depth"
+
+    def __init__(self, weight: float) -> None:
+        self.weight = weight
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        depth_gt = inputs.frame.depth
+        if depth_gt is None:  # a frame without a map (the trainer checks that some have one)
+            return render.rgb.new_zeros(()), {}
+        error = relative_depth_error(render, depth_gt.to(render.depth.device))
+        return self.weight * error, {"depth_rel": float(error.detach())}
 
 
 class MomentumResidualLoss(LossTerm):
@@ -306,6 +338,8 @@ class FlowMatchingLoss(LossTerm):
 def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[LossTerm]:
     """The terms a run config asks for, in summation order."""
     terms: list[LossTerm] = [PhotometricLoss(config.optim.lambda_dssim, config.backend), DeformationSmoothness(config.optim.static_warmup)]
+    if config.optim.lambda_depth > 0:
+        terms.append(DepthLoss(config.optim.lambda_depth))
     if config.physics.enabled:
         terms.append(MomentumResidualLoss(config.physics, config.optim.seed + 1))
     if config.flow.enabled:

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from pidg.data.procedural import ProceduralSceneConfig, make_procedural_scene
+from pidg.data.scene import Frame
 from pidg.evaluation.evaluate import flow_end_point_errors
 from pidg.flow import flow_target_for_pair, model_flow_target
 from pidg.flow.model_flow import rendered_depth
@@ -226,3 +227,21 @@ def test_the_smoothness_term_is_the_frame_t_pass_s(scene, tmp_path, monkeypatch)
         assert all(not r and value is None for _, r, value in rest)  # t+1 (flow) passes
         with_pairs += bool(rest)
     assert with_pairs >= 5  # 8 frames: every frame but the last starts a flow pair
+
+
+def test_a_depth_loss_without_depth_maps_is_one_clear_error(scene, tmp_path):
+    cfg = tiny_config(tmp_path)
+    cfg.optim = dataclasses.replace(cfg.optim, lambda_depth=0.1)
+    with pytest.raises(ValueError, match="lambda_depth 0.1: .* has no depth maps for its training frames"):
+        Trainer(cfg, scene)
+
+
+def test_a_depth_loss_trains_on_frames_with_depth_maps(scene, tmp_path):
+    train = [Frame(f.camera, f.time, f.image_u8, f.mask, f.name, f.path, torch.full((f.height, f.width), 4.0)) for f in scene.train]
+    with_depth = dataclasses.replace(scene, splits={**scene.splits, "train": train})
+    cfg = tiny_config(tmp_path, iterations=3)
+    cfg.output = dataclasses.replace(cfg.output, log_every=1)
+    cfg.optim = dataclasses.replace(cfg.optim, lambda_depth=0.1, static_warmup=0)
+    trainer = Trainer(cfg, with_depth)
+    trainer.train()
+    assert all("depth_rel" in h and 0 <= h["depth_rel"] for h in trainer.history)
