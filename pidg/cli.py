@@ -28,7 +28,7 @@ from pidg.flow.config import FlowKind
 from pidg.metrics import NetName
 from pidg.models.material_field import Activation, MaterialFieldConfig
 from pidg.physics import PhysicsConfig, PhysicsKind
-from pidg.pipeline import evaluate_run, render_run, run_demo
+from pidg.pipeline import DEMO_DEPTH_WEIGHT, evaluate_run, render_run, run_demo
 from pidg.report import build_report
 from pidg.scenes import KINDS as SCENE_KINDS
 from pidg.scenes import SceneOptions, make_scene, parse_resolution, summary_lines
@@ -116,7 +116,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    run_demo(Path(args.out), iterations=args.iterations, minutes=args.minutes, physics=args.physics, flow=args.flow, device=args.device)
+    run_demo(
+        Path(args.out), iterations=args.iterations, minutes=args.minutes, physics=args.physics, flow=args.flow,
+        device=args.device, depth_weight=args.depth_weight,
+    )
     return 0
 
 
@@ -295,6 +298,10 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--minutes", type=float, default=5.0, help="training time budget (stops early, with a checkpoint)")
     demo.add_argument("--physics", choices=get_args(PhysicsKind), default="none", help="add the Cauchy momentum residual")
     demo.add_argument("--flow", choices=get_args(FlowKind), default="none", help="add flow matching (optical flow is computed first)")
+    demo.add_argument(
+        "--depth-weight", type=float, default=DEMO_DEPTH_WEIGHT,
+        help=f"weight of the loss against the scene's true depth maps (default {DEMO_DEPTH_WEIGHT}; 0 = RGB only, monocular)",
+    )
     _add_device_option(demo)
     demo.set_defaults(func=_cmd_demo)
 

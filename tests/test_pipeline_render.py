@@ -8,7 +8,7 @@ import torch
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data import DataConfig, load_scene
 from pidg.models.deformation import HashGridConfig
-from pidg.pipeline import render_run
+from pidg.pipeline import DEMO_DEPTH_WEIGHT, demo_config, render_run
 from pidg.training.config import TrainConfig
 from pidg.training.trainer import Trainer
 
@@ -85,3 +85,25 @@ def test_a_folder_that_is_not_a_run_is_named(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="no config.json"):
         load_run(tmp_path)
+
+
+def test_demo_trains_against_the_scene_depth_maps(tmp_path):
+    """The demo's scene ships its true depth and the demo's default run trains against it; weight 0 is RGB only."""
+    data_dir = write_procedural_dataset(
+        ProceduralSceneConfig(n_train=4, n_test=1, width=24, height=24, n_gaussians=600, n_init_points=100), tmp_path / "data"
+    )
+    config = demo_config(data_dir, tmp_path / "run", iterations=4, minutes=None)
+    assert config.optim.lambda_depth == DEMO_DEPTH_WEIGHT > 0
+    scene = load_scene(config.data)
+    assert scene.info["depth_maps"] and all(f.depth is not None for f in scene.train)
+    trainer = Trainer(config, scene)  # would stop, naming the dataset, if no training frame had depth
+    assert "depth_rel" in trainer.train_step()
+    assert demo_config(data_dir, tmp_path / "run", 4, None, depth_weight=0.0).optim.lambda_depth == 0.0
+
+
+def test_demo_with_a_negative_depth_weight_stops_before_making_the_scene(tmp_path, capsys):
+    from pidg.cli import main
+
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--depth-weight", "-1"]) != 0
+    assert "lambda_depth must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "demo" / "data").exists()

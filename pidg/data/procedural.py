@@ -25,7 +25,9 @@ number agree and mask file names are unique across splits.
 
 Images are RGBA renders (straight alpha); :func:`make_procedural_scene` composites them on the configured
 background with exactly the arithmetic of the dataset loader, so the in-memory scene and the one read back from
-:func:`write_procedural_dataset`'s folder are identical.
+:func:`write_procedural_dataset`'s folder are identical. Every frame also has its true depth (camera z, as an
+RGB-D sensor would measure it), which a run may train against (``--optim.lambda_depth``): a monocular orbit leaves
+the moving ring's depth under-determined, and that, not the model, is what limits its novel views (README).
 """
 
 from __future__ import annotations
@@ -71,6 +73,16 @@ _LIGHT = torch.tensor([0.35, -0.45, 0.82], dtype=torch.float64)  # baked-shading
 # Share of the Gaussians per part; the torus gets the rest.
 _FLOOR_SHARE, _BALL_SHARE = 0.35, 0.10
 GT_VELOCITY_STEP = 1e-5  # dataset time: central differences of the analytic deformation (float64)
+
+
+@dataclass(frozen=True)
+class ProceduralFrame:
+    """One rendered view of the scene: what a dataset frame stores, plus the ground truth that comes with it."""
+
+    rgba: np.ndarray  # [H, W, 4] uint8, straight alpha
+    mask: np.ndarray  # [H, W] bool, True where the moving ring is seen
+    depth: np.ndarray  # [H, W] float32 expected camera z (world units) where alpha >= 0.5, else 0 (= unknown)
+    flow: FrameFlow | None  # ground-truth motion flow, when asked for
 
 
 @dataclass(frozen=True)
@@ -378,7 +390,7 @@ class ProceduralScene:
 
     def motion_flow(self, t: float, camera: Camera, dt: float | None = None) -> FrameFlow:
         """The ground-truth flow of the view at time t (see :meth:`render_frame`)."""
-        flow = self.render_frame(t, camera, True, dt)[2]
+        flow = self.render_frame(t, camera, True, dt).flow
         assert flow is not None
         return flow
 
@@ -433,13 +445,18 @@ class ProceduralScene:
         The mask is where the ring is visible: its composited "is dynamic" channel exceeds 0.5, i.e. the ring
         makes up most of the pixel.
         """
-        rgba, mask, _ = self.render_frame(t, camera, with_flow=False)
-        return rgba, mask
+        frame = self.render_frame(t, camera, with_flow=False)
+        return frame.rgba, frame.mask
 
     def render_frame(
         self, t: float, camera: Camera, with_flow: bool = True, dt: float | None = None
-    ) -> tuple[np.ndarray, np.ndarray, FrameFlow | None]:
-        """:meth:`render`, and with ``with_flow`` the view's ground-truth flow from the same rasterizer pass.
+    ) -> ProceduralFrame:
+        """:meth:`render` with the view's depth, and with ``with_flow`` its ground-truth flow, from one rasterizer
+        pass.
+
+        Depth is the composited camera z over the composited alpha (the expected depth of what is hit), kept where
+        alpha >= 0.5 (:meth:`RenderOutput.opaque_depth`), as a model's rendered depth is kept for the flow
+        target and the depth loss.
 
         The flow runs from t to t + dt (default: one training-frame interval) with ``camera`` held fixed: each
         Gaussian's projected centre displacement, composited with the colour weights beside the "is dynamic"
@@ -466,7 +483,8 @@ class ProceduralScene:
         rgba_u8[rgba_u8[..., 3] == 0, :3] = 0  # fully transparent: no colour (keeps PNGs small and tidy)
         mask = (out.features[..., 0] > 0.5).numpy()
         flow = FrameFlow(composited_flow(out.features[..., 1:], out.alpha).numpy(), mask, t, t + dt) if with_flow else None
-        return rgba_u8, mask, flow
+        depth = out.opaque_depth().to(torch.float32).numpy()
+        return ProceduralFrame(rgba_u8, mask, depth, flow)
 
     def initial_points(self) -> PointCloud:
         """The initial point cloud, standing in for the SfM points of a real capture.
@@ -504,9 +522,7 @@ class _Rendered:
     time: float
     c2w: Tensor  # [4, 4] float64, OpenGL camera-to-world
     camera: Camera
-    rgba: np.ndarray  # [H, W, 4] uint8, straight alpha
-    mask: np.ndarray  # [H, W] bool
-    flow: FrameFlow | None = None  # ground-truth motion flow (written datasets only)
+    view: ProceduralFrame
 
     @property
     def file_name(self) -> str:
@@ -524,8 +540,7 @@ def _render_all(scene: ProceduralScene, with_flow: bool = False) -> dict[str, li
         for number, t in items:
             c2w = scene.camera_to_world(split, t)
             camera = scene.camera(c2w)
-            rgba, mask, flow = scene.render_frame(t, camera, with_flow)
-            out[split].append(_Rendered(split, number, t, c2w, camera, rgba, mask, flow))
+            out[split].append(_Rendered(split, number, t, c2w, camera, scene.render_frame(t, camera, with_flow)))
     return out
 
 
@@ -541,8 +556,8 @@ def _scene_data(
     config: ProceduralSceneConfig, rendered: dict[str, list[_Rendered]], points: PointCloud, root: Path
 ) -> SceneData:
     def frame(r: _Rendered) -> Frame:
-        image = torch.from_numpy(composite_rgba(r.rgba, config.background_rgb))
-        return Frame(r.camera, r.time, image, torch.from_numpy(r.mask), r.name)
+        image = torch.from_numpy(composite_rgba(r.view.rgba, config.background_rgb))
+        return Frame(r.camera, r.time, image, torch.from_numpy(r.view.mask), r.name, depth=torch.from_numpy(r.view.depth))
 
     splits = {split: [frame(r) for r in items] for split, items in rendered.items()}
     centers = torch.stack([r.c2w[:3, 3] for r in rendered["train"]])
@@ -571,20 +586,23 @@ def write_procedural_dataset(config: ProceduralSceneConfig | None, out_dir: Path
 
     Layout: ``transforms_{train,[val,]test}.json`` (``camera_angle_x``; frames with ``file_path``, ``time`` and
     an OpenGL camera-to-world ``transform_matrix``), RGBA frames ``{split}/r_NNNN.png``, motion masks
-    ``mask/r_NNNN.png`` (0/255), ``points3d.ply`` and ``procedural.json`` (the config, for provenance).
+    ``mask/r_NNNN.png`` (0/255), depth maps ``depth/r_NNNN.npy`` (float32 camera z, 0 = unknown),
+    ``points3d.ply`` and ``procedural.json`` (the config, for provenance).
     Load it with ``DataConfig(out_dir, background=config.background)`` to get the in-memory scene's images.
     """
     config = config or ProceduralSceneConfig()
     root = Path(out_dir)
-    (root / "mask").mkdir(parents=True, exist_ok=True)
+    for folder in ("mask", "depth"):
+        (root / folder).mkdir(parents=True, exist_ok=True)
     scene = ProceduralScene(config)
     rendered = _render_all(scene, with_flow=True)
     for split, items in rendered.items():
         (root / split).mkdir(exist_ok=True)
         frames = []
         for r in items:
-            Image.fromarray(r.rgba, "RGBA").save(root / f"{r.name}.png")
-            Image.fromarray(r.mask.astype(np.uint8) * 255, "L").save(root / "mask" / f"{r.file_name}.png")
+            Image.fromarray(r.view.rgba, "RGBA").save(root / f"{r.name}.png")
+            Image.fromarray(r.view.mask.astype(np.uint8) * 255, "L").save(root / "mask" / f"{r.file_name}.png")
+            np.save(root / "depth" / f"{r.file_name}.npy", r.view.depth)
             frames.append({"file_path": f"./{r.name}", "time": r.time, "transform_matrix": r.c2w.tolist()})
         meta = {"camera_angle_x": math.radians(config.fov_x_deg), "frames": frames}
         (root / f"transforms_{split}.json").write_text(json.dumps(meta, indent=2))
@@ -601,8 +619,8 @@ def write_procedural_motion_gt(scene: ProceduralScene, rendered: dict[str, list[
     centres as vertices, sampled at every frame's time, and one flow per image over one training-frame interval."""
     frames = [r for items in rendered.values() for r in items]
     for r in frames:
-        assert r.flow is not None  # rendered with_flow
-        write_frame_flow(root, r.name, r.flow)
+        assert r.view.flow is not None  # rendered with_flow
+        write_frame_flow(root, r.name, r.view.flow)
     vertices = scene.vertex_motion([r.time for r in frames])
     ring = MotionObject("ring", "analytic", 0, int(vertices.positions.shape[1]))
     extra = {

@@ -17,8 +17,7 @@ from pidg.flow.config import FlowConfig
 from pidg.flow.decomposition import FlowTarget, dilate_mask, motion_flow_target
 from pidg.flow.preprocess import FlowPair
 from pidg.render.api import RenderOutput
-
-DEPTH_MIN_ALPHA = 0.5  # rendered depth counts only where the render is mostly opaque
+from pidg.render.output import OPAQUE_ALPHA
 
 
 @dataclass
@@ -102,10 +101,10 @@ def lpfm_loss(
     )
 
 
-def depth_from_render(render: RenderOutput, min_alpha: float = DEPTH_MIN_ALPHA) -> Tensor:
+def depth_from_render(render: RenderOutput, min_alpha: float = OPAQUE_ALPHA) -> Tensor:
     """Expected depth [H, W] of a render (frame t+1, camera t+1), 0 (= unknown) where alpha < ``min_alpha``:
     half-transparent pixels mix foreground and background depths, and empty ones have none."""
-    return torch.where(render.alpha.detach() >= min_alpha, render.depth_normalized().detach(), 0.0)
+    return render.opaque_depth(min_alpha).detach()
 
 
 def total_flow_target(pair: FlowPair, config: FlowConfig) -> FlowTarget:

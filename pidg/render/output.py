@@ -6,6 +6,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+# A pixel's expected depth counts only where the render is mostly opaque: half-transparent pixels mix foreground and
+# background depths, and empty ones have none. Shared by the flow target, the depth loss and generated depth maps.
+OPAQUE_ALPHA = 0.5
+
 
 @dataclass
 class RenderOutput:
@@ -41,3 +45,7 @@ class RenderOutput:
     def depth_normalized(self, eps: float = 1e-6) -> Tensor:
         """Expected depth given that something was hit: depth / alpha (0 where alpha < eps)."""
         return torch.where(self.alpha > eps, self.depth / self.alpha.clamp_min(eps), torch.zeros_like(self.depth))
+
+    def opaque_depth(self, min_alpha: float = OPAQUE_ALPHA) -> Tensor:
+        """Expected depth [H, W] where alpha >= ``min_alpha``, else 0 (= unknown): the depth map a sensor would give."""
+        return torch.where(self.alpha >= min_alpha, self.depth_normalized(), torch.zeros_like(self.depth))

@@ -7,6 +7,7 @@ import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 import dataclasses
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -274,7 +275,7 @@ def test_flow_target_of_a_still_camera_is_the_optical_flow_and_scores_the_truths
 # ---------------------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    """A procedural dataset (it carries its ground-truth motion) and a 6-step run with a material field, trained by
+    """A procedural dataset (it carries its ground-truth motion; its depth maps removed) and a 6-step run with a material field, trained by
     the command line."""
     from pidg.cli import main
     from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
@@ -282,6 +283,7 @@ def tiny_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("motion_eval")
     config = ProceduralSceneConfig(n_train=6, n_test=2, width=32, height=32, n_gaussians=800, n_init_points=300)
     data_dir = write_procedural_dataset(config, root / "data")
+    shutil.rmtree(data_dir / "depth")  # as monocular RGB data: the flow target then needs the run's own depth
     assert main(["train", "--data.path", str(data_dir), "--output.dir", str(root / "run"), "--physics", "cmr",
                  "--optim.iterations", "6", "--output.progress", "false", "--output.checkpoint_every", "0",
                  "--output.preview_every", "0", "--densify.start", "1000", "--physics.samples", "64",

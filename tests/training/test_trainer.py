@@ -17,7 +17,10 @@ from pidg.training.trainer import Trainer
 
 @pytest.fixture(scope="module")
 def scene():
-    return make_procedural_scene(ProceduralSceneConfig(n_train=8, n_test=2, width=40, height=40, n_gaussians=1500, n_init_points=400))
+    """The procedural scene as monocular RGB data: its depth maps dropped (tests that want depth add their own)."""
+    made = make_procedural_scene(ProceduralSceneConfig(n_train=8, n_test=2, width=40, height=40, n_gaussians=1500, n_init_points=400))
+    splits = {name: [dataclasses.replace(f, depth=None) for f in frames] for name, frames in made.splits.items()}
+    return dataclasses.replace(made, splits=splits)
 
 
 def tiny_config(out_dir, iterations=16) -> TrainConfig:
