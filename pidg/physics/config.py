@@ -37,6 +37,11 @@ class PhysicsConfig:
     # (one block) the peak is ~40 MiB and checkpointing a single block saves nothing.
     checkpoint_blocks: bool = False
     """Recompute each block's activations in backward instead of storing them (less memory, more time)."""
+    # Off by default: not in the paper. Measured on generated scenes with ground-truth motion (README, issue 16).
+    lambda_kinematic: Annotated[float, NON_NEGATIVE] = 0.0
+    """Weight of the particle-velocity consistency L_kin (pidg.physics.consistency): the material field's v at
+    ``samples`` random particles against the deformation's own velocity there (detached), in box half-extents per
+    training frame. An extension, not in the paper; applied with L_CMR (same start)."""
     density: Annotated[float, POSITIVE] = 1.0
     """rho, in mass per world volume (paper: 1)."""
     detach_positions: bool = False

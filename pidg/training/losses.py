@@ -39,8 +39,8 @@ from pidg.flow import (
 from pidg.metrics import ssim
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
-from pidg.physics import PhysicsConfig, cmr_loss
-from pidg.render import RenderOutput
+from pidg.physics import PhysicsConfig, cmr_loss, particle_velocity, sample_rows, velocity_mismatch
+from pidg.render import OPAQUE_ALPHA, RenderOutput
 from pidg.training.config import TrainConfig
 from pidg.training.fused_ssim import fused_ssim
 
@@ -156,7 +156,7 @@ class DeformationSmoothness(LossTerm):
         return reg, {"deform_reg": float(reg.detach())}
 
 
-def relative_depth_error(render: RenderOutput, depth_gt: Tensor, min_alpha: float = 0.5) -> Tensor:
+def relative_depth_error(render: RenderOutput, depth_gt: Tensor, min_alpha: float = OPAQUE_ALPHA) -> Tensor:
     """Mean |d - d_gt| / d_gt of the rendered expected depth d (depth / alpha) over the pixels with a measured depth
     (d_gt > 0, finite); pixels the render leaves (nearly) empty (alpha < ``min_alpha``) count with d = 0, an error
     of 1, so the loss also pulls Gaussians onto measured surfaces (zero when no pixel has a depth)."""
@@ -209,6 +209,47 @@ class MomentumResidualLoss(LossTerm):
             model.time_axis, self.generator,
         )
         return self.config.lambda_cmr * cmr.loss, {"cmr": float(cmr.loss.detach()), **{f"cmr_{k}": float(v) for k, v in cmr.stats.items()}}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.generator.set_state(state["generator"])
+
+
+class ParticleVelocityLoss(LossTerm):
+    """lambda_kinematic * L_kin (``pidg.physics.consistency``): the material field's v at random particles against
+    the deformation's central-difference velocity there, so v follows the particles everywhere, not only where the
+    flow loss sees them (an extension; off by default)."""
+
+    name = "kinematic"
+    phase = "physics"
+
+    def __init__(self, config: PhysicsConfig, seed: int) -> None:
+        self.config = config
+        self.generator = torch.Generator().manual_seed(seed)  # the particle subsets (CPU), saved in checkpoints
+
+    def active(self, step: int) -> bool:
+        return self.config.active(step) and self.config.lambda_kinematic > 0
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        model = inputs.model
+        field = model.material_field
+        if field is None:
+            raise RuntimeError("the particle-velocity term needs a material field: build the model with one")
+        moving = model.dynamic_mask  # once decoupled, static particles do not move and have v = 0 by definition
+        candidates = torch.arange(model.num_gaussians) if moving is None else moving.cpu().nonzero().squeeze(1)
+        if not inputs.deforming or candidates.numel() == 0:
+            return render.rgb.new_zeros(()), {}
+        picked = sample_rows(candidates.numel(), self.config.samples, self.generator)
+        rows = (candidates if picked is None else candidates[picked]).to(inputs.state.means.device)
+        t, h = inputs.frame.time, 0.5 * model.time_axis.frame_interval
+        t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
+        with torch.no_grad():
+            target = particle_velocity(model.at(t0, rows=rows).means, model.at(t1, rows=rows).means, t0, t1, model.time_axis)
+        v = model.velocities(t, means=inputs.state.means.detach()[rows], rows=rows)
+        mismatch = velocity_mismatch(v, target, model.time_axis, field.normalize.half_extent)
+        return self.config.lambda_kinematic * mismatch, {"kinematic": float(mismatch.detach())}
 
     def state_dict(self) -> dict[str, Any]:
         return {"generator": self.generator.get_state()}
@@ -342,6 +383,8 @@ def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[
         terms.append(DepthLoss(config.optim.lambda_depth))
     if config.physics.enabled:
         terms.append(MomentumResidualLoss(config.physics, config.optim.seed + 1))
+        if config.physics.lambda_kinematic > 0:
+            terms.append(ParticleVelocityLoss(config.physics, config.optim.seed + 2))
     if config.flow.enabled:
         if flow_cache is None:
             raise ValueError("the flow loss needs the scene's optical flow (a FlowCache)")

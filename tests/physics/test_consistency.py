@@ -1,0 +1,81 @@
+"""The particle-velocity consistency term: known answers, its units, and that it teaches v the particles' motion."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+import pidg  # noqa: F401  (before torch is used)
+from pidg.data import DataConfig, load_scene
+from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
+from pidg.models.time_axis import TimeAxis
+from pidg.physics import particle_velocity, velocity_mismatch
+from pidg.training.config import TrainConfig, apply_preset
+from pidg.training.losses import StepInputs
+from pidg.training.trainer import Trainer
+
+
+def test_particle_velocity_is_the_difference_quotient_in_physics_time():
+    axis = TimeAxis.from_times([0.0, 0.25, 0.5, 0.75, 1.0])  # one physics unit per frame: 4 units per dataset unit
+    x0 = torch.tensor([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]])
+    x1 = x0 + torch.tensor([[0.5, 0.0, -0.25], [0.0, 0.0, 0.0]])
+    v = particle_velocity(x0, x1, 0.5, 0.625, axis)  # half a frame: 0.5 physics units
+    torch.testing.assert_close(v, torch.tensor([[1.0, 0.0, -0.5], [0.0, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="t1 > t0"):
+        particle_velocity(x0, x1, 0.5, 0.5, axis)
+
+
+@pytest.mark.parametrize("time_scale", [0.0, 1.0, 7.5])
+def test_mismatch_is_per_frame_in_box_half_extents_whatever_the_time_unit(time_scale):
+    """The same motion (a particle that moves 0.3 world units per frame against a field that says 0.1) gives the
+    same loss in every physics time unit: |0.2| world units per frame over a half-extent of 2 = 0.1."""
+    axis = TimeAxis.from_times([i / 10 for i in range(11)], time_scale)
+    per_physics_unit = 1.0 / axis.frame_dt  # world units per physics unit of 1 world unit per frame
+    moving = torch.tensor([[0.3, 0.0, 0.0]]) * per_physics_unit
+    field = torch.tensor([[0.1, 0.0, 0.0]]) * per_physics_unit
+    mismatch = velocity_mismatch(field, moving, axis, torch.tensor([2.0, 2.0, 2.0]))
+    assert float(mismatch) == pytest.approx(0.1, rel=1e-6)
+    # the half-extent is per axis: an error along z is measured in z's half-extent
+    along_z = velocity_mismatch(torch.tensor([[0.0, 0.0, 0.4]]) * per_physics_unit, torch.zeros(1, 3), axis,
+                                torch.tensor([1.0, 1.0, 4.0]))
+    assert float(along_z) == pytest.approx(0.1, rel=1e-6)
+    assert float(velocity_mismatch(torch.zeros(0, 3), torch.zeros(0, 3), axis, torch.ones(3))) == 0.0
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        velocity_mismatch(torch.zeros(2, 3), torch.zeros(3, 3), axis, torch.ones(3))
+
+
+def test_the_term_teaches_v_the_deformation_velocity_and_leaves_the_deformation_alone(tmp_path):
+    data_dir = write_procedural_dataset(
+        ProceduralSceneConfig(n_train=6, n_test=1, width=32, height=32, n_gaussians=800, n_init_points=300), tmp_path / "data"
+    )
+    cfg = apply_preset(TrainConfig(data=DataConfig(path=data_dir, progress=False)), "cpu")
+    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=4096, lambda_kinematic=1.0)
+    cfg.densify = dataclasses.replace(cfg.densify, start=10_000)
+    cfg.optim = dataclasses.replace(cfg.optim, iterations=40)
+    cfg.output = dataclasses.replace(cfg.output, dir=tmp_path / "run", checkpoint_every=0, progress=False, preview_every=0)
+    trainer = Trainer(cfg, load_scene(cfg.data))
+    history = [trainer.train_step() for _ in range(40)]  # the deformation learns some motion
+    assert all("kinematic" in h and h["kinematic"] >= 0 for h in history)
+    term = next(t for t in trainer.loss_terms if t.name == "kinematic")
+    model, frame = trainer.model, trainer.scene.train[2]
+
+    def mismatch() -> torch.Tensor:
+        state = model.at(frame.time)  # all 300 particles (fewer than the samples): the same rows every call
+        loss, _ = term.loss(StepInputs(0, frame, model, state, True), model.render_state(state, frame.camera), None)
+        return loss
+
+    before = mismatch()
+    assert float(before.detach()) > 1e-4  # the particles move and v does not follow yet
+    model.deformation.zero_grad(set_to_none=True)
+    model.material_field.zero_grad(set_to_none=True)
+    before.backward()  # the target is detached: no gradient reaches the deformation, only the field
+    assert all(p.grad is None or not p.grad.any() for p in model.deformation.parameters())
+    assert any(p.grad is not None and p.grad.any() for p in model.material_field.parameters())
+    dense = [p for name, p in model.material_field.named_parameters() if name != "index_embedding"]  # sparse grads
+    optimizer = torch.optim.Adam(dense, lr=3e-3)
+    for _ in range(100):
+        optimizer.zero_grad()
+        mismatch().backward()
+        optimizer.step()
+    assert float(mismatch().detach()) < 0.5 * float(before.detach())
