@@ -187,15 +187,27 @@ class DepthLoss(LossTerm):
         return self.weight * error, {"depth_rel": float(error.detach())}
 
 
-class MomentumResidualLoss(LossTerm):
-    """lambda_cmr * L_CMR on a random subset of the Gaussians at their deformed positions (``--physics cmr``)."""
+class _PhysicsParticleTerm(LossTerm):
+    """A physics term on random particle subsets: its settings and its own generator, saved in checkpoints so a
+    resumed run draws the same subsets."""
 
-    name = "cmr"
     phase = "physics"
 
     def __init__(self, config: PhysicsConfig, seed: int) -> None:
         self.config = config
-        self.generator = torch.Generator().manual_seed(seed)  # the particle subsets (CPU), saved in checkpoints
+        self.generator = torch.Generator().manual_seed(seed)  # CPU: the same subsets on any device
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.generator.set_state(state["generator"])
+
+
+class MomentumResidualLoss(_PhysicsParticleTerm):
+    """lambda_cmr * L_CMR on a random subset of the Gaussians at their deformed positions (``--physics cmr``)."""
+
+    name = "cmr"
 
     def active(self, step: int) -> bool:
         return self.config.active(step)
@@ -210,24 +222,13 @@ class MomentumResidualLoss(LossTerm):
         )
         return self.config.lambda_cmr * cmr.loss, {"cmr": float(cmr.loss.detach()), **{f"cmr_{k}": float(v) for k, v in cmr.stats.items()}}
 
-    def state_dict(self) -> dict[str, Any]:
-        return {"generator": self.generator.get_state()}
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.generator.set_state(state["generator"])
-
-
-class ParticleVelocityLoss(LossTerm):
+class ParticleVelocityLoss(_PhysicsParticleTerm):
     """lambda_kinematic * L_kin (``pidg.physics.consistency``): the material field's v at random particles against
     the deformation's central-difference velocity there, so v follows the particles everywhere, not only where the
     flow loss sees them (an extension; off by default)."""
 
     name = "kinematic"
-    phase = "physics"
-
-    def __init__(self, config: PhysicsConfig, seed: int) -> None:
-        self.config = config
-        self.generator = torch.Generator().manual_seed(seed)  # the particle subsets (CPU), saved in checkpoints
 
     def active(self, step: int) -> bool:
         return self.config.active(step) and self.config.lambda_kinematic > 0
@@ -250,12 +251,6 @@ class ParticleVelocityLoss(LossTerm):
         v = model.velocities(t, means=inputs.state.means.detach()[rows], rows=rows)
         mismatch = velocity_mismatch(v, target, model.time_axis, field.normalize.half_extent)
         return self.config.lambda_kinematic * mismatch, {"kinematic": float(mismatch.detach())}
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"generator": self.generator.get_state()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.generator.set_state(state["generator"])
 
 
 @dataclass
