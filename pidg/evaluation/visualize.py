@@ -41,7 +41,8 @@ def _per_pixel(features: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
 def material_field_images(
     model: DynamicGaussians, frame: Frame, dt: float, max_velocity_px: float | None = None, max_stress: float | None = None
 ) -> FieldImages:
-    """Velocity and stress of the material field at the Gaussians' positions at ``frame.time``, seen from its camera.
+    """Velocity and stress of the material field at the Gaussians' positions at ``frame.time``, seen from its camera
+    (the velocity as the model defines it: static Gaussians, once decoupled, have none).
 
     The projected velocity of a Gaussian is proj(x + v dt) - proj(x) in pixels (``dt`` in the field's physics time
     units, see :class:`pidg.models.time_axis.TimeAxis`); pass the same ``max_*`` for every frame of a video so
@@ -49,7 +50,8 @@ def material_field_images(
     """
     state = model.at(frame.time)
     means = state.means
-    v, sigma = model.field_values(means, frame.time)
+    v = model.velocities(frame.time, means)  # 0 on static Gaussians once decoupled: they do not move
+    sigma = model.field_values(means, frame.time)[1]
     uv, _ = frame.camera.project_points(means)
     uv_next, _ = frame.camera.project_points(means + v * dt)
     features = torch.cat([uv_next - uv, stress_magnitude(sigma).unsqueeze(-1)], dim=-1)
