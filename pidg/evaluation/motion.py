@@ -294,8 +294,7 @@ def _velocity_at(model: DynamicGaussians, t: float, points: Tensor, radius: floa
     idx, dist = nearest_gaussians(points, means)
     hit = dist <= radius
     idx = idx[hit]
-    t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
-    out = {"hit": hit, "distance": dist[hit], "deformation": (model.at(t1).means[idx] - model.at(t0).means[idx]) / (t1 - t0)}
+    out = {"hit": hit, "distance": dist[hit], "deformation": model.motion_velocity(t, h)[idx]}
     if model.material_field is not None:
         out["field"] = velocity_per_dataset_time(model.velocities(t, means)[idx], model.time_axis)
     return out

@@ -151,6 +151,15 @@ class DynamicGaussians:
             static = None if static is None else static[rows]
         return self.deformation(means, quats, log_scales, t, static_mask=static, regularize=regularize)
 
+    def motion_velocity(self, t: float, h: float, rows: Tensor | None = None) -> Tensor:
+        """The deformation's own velocity dx/dt [N, 3] at dataset time ``t``, in world units per unit of dataset time:
+        the central difference of the means over t +- h, one-sided where that leaves [0, 1]. ``rows`` as :meth:`at`'s.
+        The motion metrics and the particle-velocity loss both read it."""
+        if not h > 0:
+            raise ValueError(f"motion_velocity: the step h must be > 0, got {h}")
+        t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
+        return (self.at(t1, rows=rows).means - self.at(t0, rows=rows).means) / (t1 - t0)
+
     # ---- rendering -------------------------------------------------------------------------------------------
     def render(self, camera: Camera, t: float, features: Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
         """The scene at dataset time ``t`` seen from ``camera``; ``features`` [N, C]: extra per-Gaussian channels."""

@@ -6,25 +6,25 @@ not in the paper) compares them directly in 3D on sampled particles:
 
     L_kin = mean_i | v(x_i(t), t) - (x_i(t + h) - x_i(t - h)) / (2h) | * dt_frame / L
 
-with v in world units per physics time unit, h half a training-frame interval, the difference quotient converted
-to physics time (``TimeAxis.to_physics``), dt_frame one training-frame interval in physics time, and L the material
+with v in world units per physics time unit, h half a training-frame interval, the difference quotient
+(``DynamicGaussians.motion_velocity``, the one the motion metrics score) converted to physics time, dt_frame one
+training-frame interval in physics time, and L the material
 field's box half-extent per axis: the error in box half-extents per training frame, unitless and the same for any
 ``--physics.time_scale``. The deformation's velocity is a target (detached): the term teaches v, not the motion.
 """
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
+from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.time_axis import TimeAxis
 
 
-def particle_velocity(before: Tensor, after: Tensor, t0: float, t1: float, time_axis: TimeAxis) -> Tensor:
-    """The difference quotient (after - before) / (t1 - t0) of positions [N, 3] at dataset times t0 < t1, in world
-    units per physics time unit."""
-    if not t1 > t0:
-        raise ValueError(f"particle_velocity: need t1 > t0, got t0={t0}, t1={t1}")
-    return (after - before) / time_axis.to_physics(t1 - t0)
+def particle_velocity(model: DynamicGaussians, t: float, rows: Tensor | None = None) -> Tensor:
+    """The deformation's velocity [N, 3] of the particles ``rows`` (all: None) at dataset time ``t``, over half a
+    training-frame interval either side, in world units per physics time unit (tau = t * S: dx/dtau = dx/dt / S)."""
+    time_axis = model.time_axis
+    return model.motion_velocity(t, 0.5 * time_axis.frame_interval, rows) / time_axis.physics_per_dataset
 
 
 def velocity_mismatch(v: Tensor, target: Tensor, time_axis: TimeAxis, half_extent: Tensor) -> Tensor:

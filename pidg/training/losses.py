@@ -164,10 +164,8 @@ def relative_depth_error(render: RenderOutput, depth_gt: Tensor, min_alpha: floa
     if not bool(valid.any()):
         return render.depth.new_zeros(())
     d_gt = depth_gt[valid]
-    d = render.depth_normalized()[valid]
-    covered = render.alpha.detach()[valid] >= min_alpha
-    error = torch.where(covered, (d - d_gt).abs() / d_gt, torch.ones_like(d_gt))
-    return error.mean()
+    d = render.opaque_depth(min_alpha)[valid]  # 0 where the render leaves the pixel (nearly) empty: error exactly 1
+    return ((d - d_gt).abs() / d_gt).mean()
 
 
 class DepthLoss(LossTerm):
@@ -244,10 +242,9 @@ class ParticleVelocityLoss(_PhysicsParticleTerm):
             return render.rgb.new_zeros(()), {}
         picked = sample_rows(candidates.numel(), self.config.samples, self.generator)
         rows = (candidates if picked is None else candidates[picked]).to(inputs.state.means.device)
-        t, h = inputs.frame.time, 0.5 * model.time_axis.frame_interval
-        t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
+        t = inputs.frame.time
         with torch.no_grad():
-            target = particle_velocity(model.at(t0, rows=rows).means, model.at(t1, rows=rows).means, t0, t1, model.time_axis)
+            target = particle_velocity(model, t, rows)
         v = model.velocities(t, means=inputs.state.means.detach()[rows], rows=rows)
         mismatch = velocity_mismatch(v, target, model.time_axis, field.normalize.half_extent)
         return self.config.lambda_kinematic * mismatch, {"kinematic": float(mismatch.detach())}

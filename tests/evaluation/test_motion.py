@@ -29,6 +29,7 @@ from pidg.models.deformation.base import DeformationModel, DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.gaussians import GaussianModel
 from pidg.models.time_axis import TimeAxis
+from pidg.physics import particle_velocity
 from pidg.render import Camera
 
 W, H, Z = 40, 32, 2.0  # image size; the Gaussians lie on the plane z = 2 in front of the camera
@@ -87,6 +88,18 @@ def plane_model(field_velocity: Tensor | None) -> DynamicGaussians:
                               torch.rand(n, 1, 3, generator=torch.Generator().manual_seed(0)), torch.zeros(n, 0, 3), sh_degree=0)
     field = None if field_velocity is None else ConstantField(field_velocity)
     return DynamicGaussians(gaussians, Translation(VELOCITY), field, TimeAxis(S, 1.0 / S), torch.zeros(3), backend="cpu")
+
+
+def test_motion_velocity_is_the_central_difference_and_particle_velocity_its_physics_units():
+    model = plane_model(None)
+    torch.testing.assert_close(model.motion_velocity(0.5, 0.1), VELOCITY.expand(model.num_gaussians, 3))
+    torch.testing.assert_close(model.motion_velocity(0.0, 0.1), VELOCITY.expand(model.num_gaussians, 3))  # one-sided
+    rows = torch.tensor([3, 0, 3])
+    torch.testing.assert_close(model.motion_velocity(1.0, 0.2, rows), VELOCITY.expand(3, 3))
+    with pytest.raises(ValueError, match="h must be > 0"):
+        model.motion_velocity(0.5, 0.0)
+    # per physics time unit: tau = S t, so dx/dtau = VELOCITY / S (the loss's target, over half a frame either side)
+    torch.testing.assert_close(particle_velocity(model, 0.5, rows), (VELOCITY / S).expand(3, 3))
 
 
 CAMERA = Camera(torch.eye(4), 30.0, 30.0, W / 2, H / 2, W, H)
