@@ -300,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--flow", choices=get_args(FlowKind), default="none", help="add flow matching (optical flow is computed first)")
     demo.add_argument(
         "--depth-weight", type=float, default=DEMO_DEPTH_WEIGHT,
-        help=f"weight of the loss against the scene's true depth maps (default {DEMO_DEPTH_WEIGHT}; 0 = RGB only, monocular)",
+        help=f"weight of the loss against the scene's true depth maps (default {DEMO_DEPTH_WEIGHT}; 0 = RGB only, "
+        "monocular); with --flow lpfm, > 0 also matches the depth change of the flow (--flow.lambda_depth_change 1)",
     )
     _add_device_option(demo)
     demo.set_defaults(func=_cmd_demo)

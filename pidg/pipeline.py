@@ -213,6 +213,9 @@ def _render_flows(
 # The demo scene's frames carry their true depth (an RGB-D capture): a monocular orbit leaves the moving ring's depth
 # under-determined, which is what held its test views to ~24 dB. Weight chosen on a val split (README).
 DEMO_DEPTH_WEIGHT = 1.0
+# With depth maps and --flow lpfm, the flow loss also matches the surface's depth change (--flow.lambda_depth_change),
+# the component of the velocity a 2D flow cannot see; the unit weight puts it on the flow's footing (not tuned).
+DEMO_DEPTH_CHANGE_WEIGHT = 1.0
 
 
 def demo_config(
@@ -220,13 +223,15 @@ def demo_config(
     depth_weight: float = DEMO_DEPTH_WEIGHT,
 ) -> TrainConfig:
     """A short schedule for the 128 px procedural scene, with the cpu preset's model sizes on any device: densify
-    early and often, stop at 60 %; the depth loss at ``depth_weight`` (0 = RGB only, monocular)."""
+    early and often, stop at 60 %; the depth loss at ``depth_weight`` (0 = RGB only, monocular) and, when it is on,
+    the flow loss's depth-change term (used with ``--flow lpfm``)."""
     cfg = apply_preset(TrainConfig(data=DataConfig(path=data_dir, progress=False), device=device), "cpu")
     densify_stop = max(int(0.6 * iterations), 1)
     cfg.densify = dataclasses.replace(cfg.densify, start=200, stop=densify_stop, every=100, opacity_reset_every=max(densify_stop // 2, 500))
     cfg.optim = dataclasses.replace(  # schedules follow the iteration count
         cfg.optim, iterations=iterations, time_budget_minutes=minutes, lambda_depth=depth_weight
     )
+    cfg.flow = dataclasses.replace(cfg.flow, lambda_depth_change=DEMO_DEPTH_CHANGE_WEIGHT if depth_weight > 0 else 0.0)
     cfg.output = dataclasses.replace(cfg.output, dir=run_dir, checkpoint_every=500, preview_every=500)
     return cfg
 

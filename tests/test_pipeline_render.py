@@ -8,7 +8,7 @@ import torch
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data import DataConfig, load_scene
 from pidg.models.deformation import HashGridConfig
-from pidg.pipeline import DEMO_DEPTH_WEIGHT, demo_config, render_run
+from pidg.pipeline import DEMO_DEPTH_CHANGE_WEIGHT, DEMO_DEPTH_WEIGHT, demo_config, render_run
 from pidg.training.config import TrainConfig
 from pidg.training.trainer import Trainer
 
@@ -98,7 +98,10 @@ def test_demo_trains_against_the_scene_depth_maps(tmp_path):
     assert scene.info["depth_maps"] and all(f.depth is not None for f in scene.train)
     trainer = Trainer(config, scene)  # would stop, naming the dataset, if no training frame had depth
     assert "depth_rel" in trainer.train_step()
-    assert demo_config(data_dir, tmp_path / "run", 4, None, depth_weight=0.0).optim.lambda_depth == 0.0
+    rgb_only = demo_config(data_dir, tmp_path / "run", 4, None, depth_weight=0.0)
+    assert rgb_only.optim.lambda_depth == 0.0 and rgb_only.flow.lambda_depth_change == 0.0
+    # with --flow lpfm the flow loss also matches the depth change, and trains with it
+    assert config.flow.lambda_depth_change == DEMO_DEPTH_CHANGE_WEIGHT > 0
 
 
 def test_demo_with_a_negative_depth_weight_stops_before_making_the_scene(tmp_path, capsys):

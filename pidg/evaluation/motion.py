@@ -23,6 +23,12 @@ ground-truth frame interval, one-sided at 0 and 1) and the material field's v co
 (:func:`velocity_per_dataset_time`). Reported: mean |v - v_gt| (per unit of dataset time, and x frame_interval: per
 frame), the mean relative error |v - v_gt| / |v_gt| over matched vertices with |v_gt| > 0 and at least
 ``speed_floor`` (default 10 % of the mean true speed), and the zero-velocity baseline (mean |v_gt|; relative error 1).
+Each error is also split along the ray from the frame's camera to the vertex and across it (mean magnitudes): a flow
+seen by that camera constrains only the part across its rays, so on the training split the part along them is what
+2D flow matching cannot teach. And the first-order floor of the velocity flow: the true velocity's own flow,
+x + v_gt(t) (t' - t) projected, against the true displacement x(t') (mean pixels over every vertex in front of the
+frame's camera at the times that have a sample at t' too); a curved path makes it non-zero, and no learned v can
+go below it by that definition.
 
 **The flow target (training pairs).** What LPFM pulls the model's flows towards, the motion-flow target of each
 training pair (:func:`pidg.flow.model_flow_target`: the optical flow minus the camera flow of frame t+1's depth, the
@@ -38,6 +44,7 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as nn_functional
 from torch import Tensor
 
 from pidg.data.motion_gt import MotionGroundTruth, composited_flow, projected_displacement, resize_flow
@@ -100,6 +107,14 @@ class VelocityScores:
     zero_mae: float | None  # the zero-velocity baseline: mean |v_gt| of the matched vertices
     zero_mae_per_frame: float | None
     zero_rel: float | None
+    # mean |error| along / across the ray from the frame's camera to each vertex (same units; zero: |v_gt|'s parts)
+    deformation_along_ray: float | None = None
+    deformation_across_ray: float | None = None
+    field_along_ray: float | None = None
+    field_across_ray: float | None = None
+    zero_along_ray: float | None = None
+    zero_across_ray: float | None = None
+    truth_velocity_flow_px: float | None = None  # the true velocity's first-order flow vs the true displacement (px)
 
 
 @dataclass
@@ -153,7 +168,10 @@ class MotionEvaluation:
             f"motion vs ground truth ({self.split}, {f.frames} frames, {f.pixels} px): motion-flow EPE {_px(f.motion_flow_epe)}, "
             f"velocity-flow EPE {_px(f.velocity_flow_epe)}, zero motion {_px(f.zero_motion_epe)}; 3D velocity "
             f"(coverage {_pct(v.coverage)} within {v.radius:.3g} world units): relative error deformation {_num(v.deformation_rel)}, "
-            f"field v {_num(v.field_rel)}, zero {_num(v.zero_rel)}"
+            f"field v {_num(v.field_rel)}, zero {_num(v.zero_rel)}; along / across the camera rays: deformation "
+            f"{_num(v.deformation_along_ray)} / {_num(v.deformation_across_ray)}, field v {_num(v.field_along_ray)} / "
+            f"{_num(v.field_across_ray)}, zero {_num(v.zero_along_ray)} / {_num(v.zero_across_ray)}; the true "
+            f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} from the true displacement"
             + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
                f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
         )
@@ -338,7 +356,9 @@ def evaluate_motion(
     h = 0.5 * truth.frame_interval if fd_step is None else float(fd_step)
     sums = dict.fromkeys(FLOW_KEYS, 0.0)
     pixels, scored, skipped, per_frame = 0, 0, [], []
-    gathered: dict[str, list[Tensor]] = {"speed_all": [], "speed": [], "distance": [], "deformation": [], "field": []}
+    gathered: dict[str, list[Tensor]] = {
+        "speed_all": [], "speed": [], "distance": [], "deformation": [], "field": [], "ray": [], "v_gt": [], "euler": []
+    }
     times_done: set[float] = set()
     for frame in frames:
         record: dict[str, Any] = {"view": frame.name, "time": frame.time}
@@ -356,7 +376,7 @@ def evaluate_motion(
             pixels, scored = pixels + n, scored + 1
         if frame.time not in times_done and _has_sample(truth, frame.time):
             times_done.add(frame.time)
-            record.update(_score_vertices(model, truth, frame.time, radius, h, gathered))
+            record.update(_score_vertices(model, truth, frame, radius, h, gathered))
         per_frame.append(record)
 
     def average(key: str) -> float | None:
@@ -376,10 +396,12 @@ def _has_sample(truth: MotionGroundTruth, t: float) -> bool:
 
 
 def _score_vertices(
-    model: DynamicGaussians, truth: MotionGroundTruth, t: float, radius: float, h: float, gathered: dict[str, list[Tensor]]
+    model: DynamicGaussians, truth: MotionGroundTruth, frame: Frame, radius: float, h: float, gathered: dict[str, list[Tensor]]
 ) -> dict[str, float | None]:
-    """Match the vertex sample at t to the model's Gaussians and add its speeds, distances and velocity errors to
-    ``gathered``; the frame's coverage, mean true speed and mean errors."""
+    """Match the vertex sample at the frame's time to the model's Gaussians and add its speeds, distances, velocity
+    errors, true velocities and unit rays from the frame's camera to the matched vertices to ``gathered``; the
+    frame's coverage, mean true speed and mean errors."""
+    t = frame.time
     k = truth.vertices.index_of(t, _TIME_TOL)
     points = torch.from_numpy(truth.vertices.positions[k]).to(model.device)
     v_gt = torch.from_numpy(truth.vertices.velocities[k]).to(model.device)
@@ -388,6 +410,14 @@ def _score_vertices(
     gathered["speed_all"].append(v_gt.norm(dim=-1))
     gathered["speed"].append(speed)
     gathered["distance"].append(found["distance"])
+    gathered["ray"].append(nn_functional.normalize(points[found["hit"]] - frame.camera.camera_center.to(points), dim=-1))
+    gathered["v_gt"].append(v_gt[found["hit"]])
+    if _has_sample(truth, t + truth.frame_interval):  # the true velocity's own first-order flow over one interval
+        later = torch.from_numpy(truth.vertices.positions[truth.vertices.index_of(t + truth.frame_interval, _TIME_TOL)]).to(points)
+        shown = projected_displacement(frame.camera, points, later)
+        advected = projected_displacement(frame.camera, points, points + v_gt * truth.frame_interval)
+        ahead = frame.camera.project_points(points)[1] > frame.camera.near
+        gathered["euler"].append((advected - shown).norm(dim=-1)[ahead])
     record = {"coverage": float(found["hit"].float().mean()), "gt_speed": _mean(speed)}
     for key in ("deformation", "field"):
         err = found[key] - v_gt[found["hit"]] if key in found else None
@@ -419,6 +449,16 @@ def _velocity_scores(
     d_mae, d_frame, d_rel = errors("deformation")
     f_mae, f_frame, f_rel = errors("field")
     zero = _mean(speed)
+    rays = cat("ray")
+
+    def along_across(key: str) -> tuple[float | None, float | None]:
+        if not gathered[key]:
+            return None, None
+        err = cat(key)
+        along = (err * rays).sum(-1, keepdim=True) * rays
+        return _mean(along.norm(dim=-1)), _mean((err - along).norm(dim=-1))
+
+    d_ray, f_ray, z_ray = along_across("deformation"), along_across("field"), along_across("v_gt")  # zero: error = -v_gt
     return VelocityScores(
         times=times, vertex_samples=vertex_samples, matched=matched,
         coverage=matched / vertex_samples if vertex_samples else None, radius=radius, fd_step=h, speed_floor=floor,
@@ -426,5 +466,8 @@ def _velocity_scores(
         deformation_mae=d_mae, deformation_mae_per_frame=d_frame, deformation_rel=d_rel,
         field_mae=f_mae, field_mae_per_frame=f_frame, field_rel=f_rel,
         zero_mae=zero, zero_mae_per_frame=_times(zero, frame_interval), zero_rel=1.0 if int(counted.sum()) else None,
+        deformation_along_ray=d_ray[0], deformation_across_ray=d_ray[1], field_along_ray=f_ray[0],
+        field_across_ray=f_ray[1], zero_along_ray=z_ray[0], zero_across_ray=z_ray[1],
+        truth_velocity_flow_px=_mean(cat("euler")) if gathered["euler"] else None,
     )
 

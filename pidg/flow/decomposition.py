@@ -29,10 +29,17 @@ from pidg.render.camera import Camera
 
 @dataclass
 class FlowTarget:
-    """A flow field [H, W, 2] in pixels with its validity [H, W] (flow is 0 where invalid)."""
+    """A flow field [H, W, 2] in pixels with its validity [H, W] (flow is 0 where invalid), and optionally the
+    surface's depth change over the pair (:func:`depth_change_target`), which a 2D flow cannot see."""
 
     flow: Tensor
     valid: Tensor
+    depth_change: Tensor | None = None
+    """[H, W] camera-t depth change z(t+1) - z(t) of the surface point at each pixel, in *pixel-equivalents*: times
+    ``depth_scale`` (0 where unknown)."""
+    depth_scale: Tensor | None = None
+    """[H, W] pixels per world unit, fx / z(t): converts a depth change in world units to the lateral image motion of
+    the same 3D size, so that it weighs like a flow; 0 where the depth change is unknown."""
 
 
 @dataclass
@@ -114,6 +121,52 @@ def dilate_mask(mask: Tensor, radius: int) -> Tensor:
         return mask.bool()
     grown = F.max_pool2d(mask.float()[None, None], kernel_size=2 * radius + 1, stride=1, padding=radius)
     return grown[0, 0] > 0.5
+
+
+DEPTH_EDGE_TOLERANCE = 0.05
+"""Largest relative depth range in a pixel's 3x3 neighbourhood for its depth to count as one smooth surface: a
+lookup across an occluding edge would mix foreground and background depths."""
+
+
+def smooth_depth(depth: Tensor, near: float, tolerance: float = DEPTH_EDGE_TOLERANCE) -> Tensor:
+    """[H, W] bool: finite depth beyond ``near`` whose 3x3 neighbourhood (valid neighbours) spans at most
+    ``tolerance`` of it."""
+    ok = torch.isfinite(depth) & (depth > near)
+    inf = torch.full_like(depth, float("inf"))
+    hi = F.max_pool2d(torch.where(ok, depth, -inf)[None, None], 3, stride=1, padding=1)[0, 0]
+    lo = -F.max_pool2d(torch.where(ok, -depth, -inf)[None, None], 3, stride=1, padding=1)[0, 0]
+    return ok & (hi - lo <= tolerance * torch.where(ok, depth, inf))
+
+
+def depth_change_target(
+    depth0: Tensor, depth1: Tensor, camera0: Camera, camera1: Camera, forward: Tensor, valid: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The third component of the motion that a 2D flow cannot see: for each pixel p of frame t, camera t's depth of
+    the surface point's t+1 position (frame t+1's depth at p + f(p), back-projected with camera t+1 and looked up
+    bilinearly) minus its depth at t (frame t's depth at p). Camera motion cancels as in the motion flow.
+
+    ``depth0`` / ``depth1`` [H, W]: camera-z depth maps of frames t and t+1 (<= near, NaN or inf = unknown);
+    ``forward`` [H, W, 2]: the optical flow t -> t+1; ``valid`` [H, W]: the pixels the flow target supervises.
+    Returns (``depth_change``, ``depth_scale``) [H, W] as :class:`FlowTarget` holds them: the change in
+    pixel-equivalents (fx / z(t) x the change in world units) and that factor; both 0 where either depth is
+    missing or not smooth (:func:`smooth_depth`), or the lookup leaves the hull of frame t+1's pixel centres.
+    The bilinear lookup of a smooth depth field is exact to second order (0.01 % on a tilted plane)."""
+    h, w = depth0.shape
+    for name, field in (("depth1", depth1), ("valid", valid)):
+        _check_field(name, field, h, w, None)
+    _check_field("forward flow", forward, h, w, 2)
+    dtype = depth1.dtype
+    ok1 = smooth_depth(depth1, camera1.near)
+    world = backproject(torch.where(ok1, depth1, torch.ones_like(depth1)), camera1)
+    _, z_in_t = camera0.project_points(world.reshape(-1, 3))
+    z_in_t = z_in_t.reshape(h, w).to(dtype)
+    lookup = pixel_centers(h, w, dtype, depth1.device) + forward.to(dtype)
+    z1, _ = sample_bilinear(z_in_t.unsqueeze(-1), lookup)
+    between_centres = ((lookup >= 0.5) & (lookup <= lookup.new_tensor([w - 0.5, h - 0.5]))).all(-1)  # no edge padding
+    known = valid & smooth_depth(depth0, camera0.near) & sample_mask(ok1, lookup) & between_centres
+    scale = torch.where(known, camera0.fx / torch.where(known, depth0, torch.ones_like(depth0)), torch.zeros_like(depth0))
+    change = torch.where(known, (z1[..., 0] - depth0) * scale, torch.zeros_like(depth0))
+    return change, scale.to(dtype)
 
 
 def motion_mask_from_flow(flow: Tensor, valid: Tensor, threshold: float) -> Tensor:

@@ -16,7 +16,10 @@ Gaussian i's flow at p is affine in p:
 so compositing M (4 channels) and b (2 channels) with the colour weights w_i = alpha_i T_i gives
 flow(p) = (M(p) p + b(p)) / sum_i w_i -- the normalised-weight (K -> infinity) form of the paper's top-K sum.
 The velocity flow replaces mu_{t+1} by the camera-t projection of x + v dt (2 more channels, b_v).
-Channel layout: [m00, m01, m10, m11, b_x, b_y, bv_x, bv_y].
+A 2D flow sees only the motion across camera t's rays; with ``depth_change`` each Gaussian also carries its
+camera-t depth change, z(x_{t+1}) - z(x_t) and z(x_t + v dt) - z(x_t) (world units), composited the same way, for
+the depth-change target of :func:`pidg.flow.decomposition.depth_change_target`.
+Channel layout: [m00, m01, m10, m11, b_x, b_y, (bv_x, bv_y), (dz, (dz_v))] -- 6, 7, 8 or 10 channels.
 """
 from __future__ import annotations
 
@@ -30,6 +33,12 @@ from pidg.render.projection import Projection
 
 FLOW_CHANNELS = 8  # with the velocity flow; 6 without
 DECODE_MIN_ALPHA = 1e-4  # below this accumulated alpha a pixel has no flow (division by ~0)
+
+
+def flow_channel_count(velocity: bool, depth_change: bool = False) -> int:
+    """Channels of :func:`flow_features`: 6 (Gaussian flow), +2 with the velocity flow, +1 per flow with its depth
+    change."""
+    return (FLOW_CHANNELS if velocity else FLOW_CHANNELS - 2) + (int(velocity) + 1 if depth_change else 0)
 
 
 def sqrtm_2x2(cov: Tensor) -> Tensor:
@@ -62,12 +71,14 @@ def _valid_covariance(cov: Tensor) -> Tensor:
 
 
 def flow_features(
-    proj_t: Projection, proj_t1: Projection, means2d_velocity: Tensor | None = None, valid: Tensor | None = None
+    proj_t: Projection, proj_t1: Projection, means2d_velocity: Tensor | None = None, valid: Tensor | None = None,
+    depth_changes: Tensor | None = None,
 ) -> Tensor:
     """Per-Gaussian flow channels [N, 8] ([N, 6] without ``means2d_velocity``), differentiable.
 
     ``proj_t`` / ``proj_t1``: the Gaussians at t and t+1, both projected with camera t. ``means2d_velocity`` [N, 2]:
-    camera-t pixels of x + v dt. Rows are zero (the Gaussian carries no flow; it still occludes) for Gaussians
+    camera-t pixels of x + v dt. ``depth_changes`` [N, 1 or 2]: appended channels (the depth changes, see the
+    module docstring), zeroed with the rest. Rows are zero (the Gaussian carries no flow; it still occludes) for Gaussians
     culled at t (radius 0: not drawn anyway), for degenerate t+1 covariances, and where ``valid`` [N] is False
     (e.g. behind camera t at t+1, see :func:`gaussian_flow_features`). A Gaussian that merely leaves the image
     by t+1 keeps its flow: that motion is real.
@@ -89,6 +100,8 @@ def flow_features(
         if tuple(means2d_velocity.shape) != tuple(mu_t.shape):
             raise ValueError(f"means2d_velocity must be [N, 2] = {list(mu_t.shape)}, got {list(means2d_velocity.shape)}")
         channels.append(means2d_velocity - mu_t - m_mu)
+    if depth_changes is not None:
+        channels.append(depth_changes)
     features = torch.cat(channels, dim=-1)
     return torch.where(k3, features, torch.zeros_like(features))
 
@@ -96,20 +109,41 @@ def flow_features(
 def decode_flows(
     features: Tensor, alpha: Tensor, min_alpha: float = DECODE_MIN_ALPHA
 ) -> tuple[Tensor, Tensor | None, Tensor]:
-    """Rendered flow channels [H, W, 8 or 6] and accumulated alpha [H, W] -> (Gaussian flow [H, W, 2], velocity
-    flow [H, W, 2] or None, valid [H, W]) in pixels at the pixel centres; flows are 0 where alpha <= min_alpha."""
+    """Rendered flow channels [H, W, 6, 7, 8 or 10] and accumulated alpha [H, W] -> (Gaussian flow [H, W, 2],
+    velocity flow [H, W, 2] or None, valid [H, W]) in pixels at the pixel centres; flows are 0 where alpha <=
+    min_alpha. Depth-change channels are ignored (:func:`decode_depth_changes`)."""
     h, w = alpha.shape
-    if features.dim() != 3 or tuple(features.shape[:2]) != (h, w) or features.shape[-1] not in (6, 8):
-        raise ValueError(f"features must be [H, W, 6 or 8] = [{h}, {w}, 8], got {list(features.shape)}")
+    _check_rendered(features, h, w)
+    velocity = features.shape[-1] in (8, 10)
     p = pixel_centers(h, w, features.dtype, features.device)
-    m, b_g, b_v = features.split([4, 2, features.shape[-1] - 6], dim=-1)  # split: one backward, not three zero-fills
+    m, b_g, b_v = features[..., : 8 if velocity else 6].split([4, 2, 2 if velocity else 0], dim=-1)  # split: one backward
     m = m.reshape(h, w, 2, 2)
     mp = (m @ p.unsqueeze(-1)).squeeze(-1)
     valid = alpha > min_alpha
     inv_alpha = torch.where(valid, 1.0 / alpha.clamp_min(min_alpha), torch.zeros_like(alpha)).unsqueeze(-1)
     flow_g = (mp + b_g) * inv_alpha
-    flow_v = (mp + b_v) * inv_alpha if features.shape[-1] == 8 else None
+    flow_v = (mp + b_v) * inv_alpha if velocity else None
     return flow_g, flow_v, valid
+
+
+def _check_rendered(features: Tensor, h: int, w: int) -> None:
+    if features.dim() != 3 or tuple(features.shape[:2]) != (h, w) or features.shape[-1] not in (6, 7, 8, 10):
+        raise ValueError(f"features must be [H, W, 6, 7, 8 or 10] = [{h}, {w}, 8], got {list(features.shape)}")
+
+
+def decode_depth_changes(features: Tensor, alpha: Tensor, min_alpha: float = DECODE_MIN_ALPHA) -> tuple[Tensor, Tensor | None]:
+    """Rendered channels [H, W, 7 or 10] -> the composited depth change of the Gaussians [H, W] and of the velocity
+    advection [H, W] or None (10 channels only), world units of camera-t depth; 0 where alpha <= min_alpha."""
+    h, w = alpha.shape
+    _check_rendered(features, h, w)
+    if features.shape[-1] not in (7, 10):
+        raise ValueError(f"features carry no depth-change channels ({features.shape[-1]} channels; 7 or 10 do)")
+    valid = alpha > min_alpha
+    inv_alpha = torch.where(valid, 1.0 / alpha.clamp_min(min_alpha), torch.zeros_like(alpha))
+    if features.shape[-1] == 7:
+        return features[..., 6] * inv_alpha, None
+    dz = features[..., 8:10] * inv_alpha.unsqueeze(-1)
+    return dz[..., 0], dz[..., 1]
 
 
 def project_velocity_means(means: Tensor, velocities: Tensor, dt: float, camera: Camera) -> tuple[Tensor, Tensor]:
@@ -130,14 +164,19 @@ def gaussian_flow_features(
     dt: float = 0.0,
     camera_t1: Camera | None = None,
     backend: RenderBackend = "auto",
+    depth_change: bool = False,
 ) -> Tensor:
-    """Feature channels [N, 8] (or [N, 6] without velocities) for ``rasterize(..., features=)`` at time t.
+    """Feature channels [N, 8] (or [N, 6] without velocities; +2 or +1 with ``depth_change``) for
+    ``rasterize(..., features=)`` at time t.
 
     Projects the Gaussians at t with camera t -- the same projection rasterize does for the image -- and those at t+1
     (and x_t + v dt) with ``camera_t1``: None (camera t) gives the motion flow, in which camera motion cancels; frame
     t+1's camera gives the total flow, the optical flow the model predicts. Gaussians whose t+1 (or advected) centre
     is not in front of that camera are dropped. ``backend``: the render's (which projection implementation).
+    ``depth_change``: append the camera-t depth changes (motion flow only: the module docstring).
     """
+    if depth_change and camera_t1 is not None:
+        raise ValueError("depth-change channels are defined for the motion flow (camera t at both times) only")
     later = camera_t if camera_t1 is None else camera_t1
     proj_t = project(means_t, quats_t, scales_t, opacities, camera_t, backend)
     proj_t1 = project(means_t1, quats_t1, scales_t1, opacities, later, backend)
@@ -146,4 +185,8 @@ def gaussian_flow_features(
     if velocities is not None:
         means2d_velocity, depth_v = project_velocity_means(means_t, velocities, dt, later)
         valid = valid & (depth_v.detach() > later.near)
-    return flow_features(proj_t, proj_t1, means2d_velocity, valid)
+    depth_changes = None
+    if depth_change:
+        changes = [proj_t1.depths - proj_t.depths] + ([depth_v - proj_t.depths] if velocities is not None else [])
+        depth_changes = torch.stack(changes, dim=-1)
+    return flow_features(proj_t, proj_t1, means2d_velocity, valid, depth_changes)

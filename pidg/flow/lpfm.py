@@ -3,18 +3,21 @@
     L_LPFM = lambda_g * L1(flow_g, flow_gt) + lambda_v * L1(flow_v, flow_gt)
 
 L1 is the per-pixel L1 norm |dx| + |dy| in pixels, averaged over the supervised pixels: flow_gt valid (motion
-mask, consistent flows, valid depth) and rendered alpha above ``FlowConfig.min_alpha``. Flows are never clamped
+mask, consistent flows, valid depth) and rendered alpha above ``FlowConfig.min_alpha``. With
+``FlowConfig.lambda_depth_change`` = c > 0 (an extension) each flow's term gains c x its depth-change error
+|dz - dz_gt| in pixel-equivalents, averaged over the supervised pixels whose depth change is known. Flows are never clamped
 or rescaled, and every field is [H, W, 2] (rows, columns, xy) -- checked, so a [2, H, W] tensor is an error.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from pidg.flow.config import FlowConfig
-from pidg.flow.decomposition import FlowTarget, dilate_mask, motion_flow_target
+from pidg.flow.decomposition import FlowTarget, depth_change_target, dilate_mask, motion_flow_target
 from pidg.flow.preprocess import FlowPair
 from pidg.render.api import RenderOutput
 from pidg.render.output import OPAQUE_ALPHA
@@ -29,12 +32,15 @@ class LPFMResult:
     epe_velocity: float | None  # same for the velocity flow (None without one)
     valid_pixels: int
     mean_target_px: float  # mean |flow_gt| on supervised pixels, to read the EPEs against
+    depth_change_error: float | None = None  # mean |dz_v - dz_gt| (|dz - dz_gt| without v), pixel-equivalents
 
     def scalars(self) -> dict[str, float]:
         out = {"lpfm": float(self.loss.detach()), "epe_gaussian": self.epe_gaussian,
                "valid_pixels": float(self.valid_pixels), "target_px": self.mean_target_px}
         if self.epe_velocity is not None:
             out["epe_velocity"] = self.epe_velocity
+        if self.depth_change_error is not None:
+            out["depth_change_error"] = self.depth_change_error
         return out
 
 
@@ -67,15 +73,28 @@ def flow_l1(flow: Tensor, flow_gt: Tensor, valid: Tensor) -> Tensor:
     return (diff * valid).sum() / count.clamp_min(1)
 
 
+def depth_change_l1(depth_change: Tensor, target: FlowTarget, valid: Tensor) -> Tensor:
+    """Mean over ``valid`` pixels whose target depth change is known of |dz x scale - dz_gt| (pixel-equivalents);
+    ``depth_change`` [H, W] is a rendered camera-t depth change in world units."""
+    assert target.depth_change is not None and target.depth_scale is not None
+    known = valid & (target.depth_scale > 0)
+    diff = (depth_change * target.depth_scale.to(depth_change.dtype) - target.depth_change.to(depth_change.dtype)).abs()
+    return (diff * known).sum() / known.sum().clamp_min(1)
+
+
 def lpfm_loss(
     flow_gaussian: Tensor,
     flow_velocity: Tensor | None,
     target: FlowTarget,
     alpha: Tensor,
     config: FlowConfig,
+    depth_changes: tuple[Tensor, Tensor | None] | None = None,
 ) -> LPFMResult:
     """L_LPFM between rendered flows [H, W, 2] (camera t, :func:`pidg.flow.gaussian_flow.decode_flows`) and the
-    motion-flow target on frame t's grid; ``alpha`` [H, W] is the rendered accumulated opacity."""
+    motion-flow target on frame t's grid; ``alpha`` [H, W] is the rendered accumulated opacity. ``depth_changes``:
+    the rendered depth changes of the Gaussians and of the velocity advection [H, W] (world units,
+    :func:`pidg.flow.gaussian_flow.decode_depth_changes`), scored when the target carries its depth change and
+    ``config.lambda_depth_change`` > 0."""
     shape = (target.flow.shape[0], target.flow.shape[1])
     _check_flow("flow_gt", target.flow, shape)
     _check_flow("flow_gaussian", flow_gaussian, shape)
@@ -91,6 +110,16 @@ def lpfm_loss(
     if flow_velocity is not None:
         loss = loss + config.lambda_velocity * flow_l1(flow_velocity, gt, valid)
         epe_v = float(end_point_error(flow_velocity.detach(), gt, valid))
+    dz_error = None
+    if depth_changes is not None and target.depth_change is not None and config.lambda_depth_change > 0:
+        dz_g, dz_v = depth_changes
+        err_g = depth_change_l1(dz_g, target, valid)
+        loss = loss + config.lambda_depth_change * config.lambda_gaussian * err_g
+        dz_error = float(err_g.detach())
+        if dz_v is not None:
+            err_v = depth_change_l1(dz_v, target, valid)
+            loss = loss + config.lambda_depth_change * config.lambda_velocity * err_v
+            dz_error = float(err_v.detach())
     count = int(valid.sum())
     return LPFMResult(
         loss=loss,
@@ -98,6 +127,7 @@ def lpfm_loss(
         epe_velocity=epe_v,
         valid_pixels=count,
         mean_target_px=float(gt[valid].norm(dim=-1).mean()) if count else 0.0,
+        depth_change_error=dz_error,
     )
 
 
@@ -120,12 +150,14 @@ def flow_target_for_pair(pair: FlowPair, depth1: Tensor | None, config: FlowConf
     """flow_gt for a cached pair. ``config.target`` "motion" (the paper): the motion flow, given frame t+1's depth
     [H, W] (dataset depth, or the model's render at t+1 in camera t+1 through :func:`depth_from_render`; 0 =
     unknown); motion mask: the dataset's mask of frame t when present, else derived from the motion flow with
-    ``config.motion_threshold``. "total": :func:`total_flow_target` (no depth needed)."""
+    ``config.motion_threshold``; with ``config.lambda_depth_change`` > 0 and frame t's depth map, also the depth
+    change (:func:`pidg.flow.decomposition.depth_change_target`). "total": :func:`total_flow_target` (no depth
+    needed)."""
     if config.target == "total":
         return total_flow_target(pair, config)
     if depth1 is None:
         raise ValueError("the motion-flow target needs frame t+1's depth")
-    return motion_flow_target(
+    target = motion_flow_target(
         depth1,
         pair.frame0.camera,
         pair.frame1.camera,
@@ -137,3 +169,8 @@ def flow_target_for_pair(pair: FlowPair, depth1: Tensor | None, config: FlowConf
         dilation=config.mask_dilation,
         motion_threshold=config.motion_threshold,
     )
+    if config.lambda_depth_change > 0 and pair.frame0.depth is not None:
+        depth0 = pair.frame0.depth.to(device=depth1.device, dtype=depth1.dtype)
+        change, scale = depth_change_target(depth0, depth1, pair.frame0.camera, pair.frame1.camera, pair.forward, target.valid)
+        target = dataclasses.replace(target, depth_change=change, depth_scale=scale)
+    return target

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from pidg.flow.config import FlowConfig
 from pidg.flow.decomposition import FlowTarget
-from pidg.flow.gaussian_flow import FLOW_CHANNELS, decode_flows, gaussian_flow_features
+from pidg.flow.gaussian_flow import decode_flows, flow_channel_count, gaussian_flow_features
 from pidg.flow.lpfm import LPFMResult, depth_from_render, flow_target_for_pair, lpfm_loss
 from pidg.flow.preprocess import FlowPair
 from pidg.models.deformation import DeformedGaussians
@@ -52,15 +52,16 @@ def supervised_flow_channels(
     supervised: Tensor,
     deforming: bool = True,
     camera_t1: Camera | None = None,
+    depth_change: bool = False,
 ) -> Tensor:
     """:func:`flow_channels` [N, C] for a loss that reads the rendered flows only at ``supervised`` pixels [H, W]
     of camera t: rows of Gaussians whose footprint misses them all are zero (they add nothing there, see
     :mod:`pidg.render.footprint`), so the deformation to t+1 (``t1``), the velocities and the flow channels are
     computed, and differentiated, for the others only. The loss and its gradients are those of the full channels.
     ``deforming`` False (a static warm-up): the Gaussians at t+1 are the canonical ones. ``camera_t1``: as in
-    :func:`flow_channels`."""
+    :func:`flow_channels`. ``depth_change``: with the depth-change channels (:mod:`pidg.flow.gaussian_flow`)."""
     n = state_t.means.shape[0]
-    channels = FLOW_CHANNELS if model.material_field is not None else FLOW_CHANNELS - 2
+    channels = flow_channel_count(model.material_field is not None, depth_change)
     with torch.no_grad():
         g = model.gaussians
         proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera, model.backend)
@@ -78,7 +79,7 @@ def supervised_flow_channels(
     sub = gaussian_flow_features(
         camera, sub_t.means, sub_t.quats, sub_t.log_scales.exp(), model.gaussians.opacities[rows],
         sub_t1.means, sub_t1.quats, sub_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
-        model.backend,
+        model.backend, depth_change,
     )
     return out.index_copy(0, rows, sub.to(out.dtype))
 

@@ -138,8 +138,38 @@ def _raft_flow(path: Path | None) -> ImagePairFlow:
     return compute
 
 
+def upsampled(compute: ImagePairFlow, factor: int) -> ImagePairFlow:
+    """``compute`` run on both images enlarged ``factor`` times (bicubic), its flow brought back to the original
+    pixel grid: the mean over each factor x factor block (whose centres average to the original pixel's centre),
+    divided by ``factor`` (high-resolution pixels -> original pixels)."""
+    if factor == 1:
+        return compute
+
+    def enlarge(image: np.ndarray) -> np.ndarray:
+        x = torch.tensor(image, dtype=torch.float32).permute(2, 0, 1)[None]  # a copy: images may be read-only
+        big = F.interpolate(x, scale_factor=factor, mode="bicubic", align_corners=False)
+        return big[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
+
+    def run(image0: np.ndarray, image1: np.ndarray) -> np.ndarray:
+        flow = torch.from_numpy(np.ascontiguousarray(compute(enlarge(image0), enlarge(image1)), dtype=np.float32))
+        small = F.avg_pool2d(flow.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0) / factor
+        return small.numpy()
+
+    return run
+
+
 def make_estimator(config: FlowConfig) -> FlowEstimator:
-    """The estimator ``config.estimator`` names; :class:`FlowEstimatorUnavailable` if it cannot run here."""
+    """The estimator ``config.estimator`` names, the OpenCV ones run at ``config.upsample`` times the images'
+    resolution (RAFT, a network trained at native resolution, at the images' own); :class:`FlowEstimatorUnavailable`
+    if it cannot run here."""
+    estimator = _make_estimator(config)
+    if config.upsample == 1 or estimator.name == "raft":
+        return estimator  # the settings (and so the flow cache's keys) of runs made before the option existed
+    settings = {**estimator.settings, "upsample": config.upsample}
+    return FlowEstimator(estimator.name, settings, upsampled(estimator.compute, config.upsample))
+
+
+def _make_estimator(config: FlowConfig) -> FlowEstimator:
     name = config.estimator
     if name == "dis":
         cv2 = _cv2()

@@ -28,6 +28,7 @@ from pidg.flow import (
     FlowConfig,
     FlowPair,
     FlowTarget,
+    decode_depth_changes,
     decode_flows,
     depth_from_render,
     flow_camera_t1,
@@ -306,7 +307,7 @@ class FlowMatchingLoss(LossTerm):
         pair, target = self._pending
         return supervised_flow_channels(
             inputs.model, inputs.frame.camera, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
-            inputs.deforming, flow_camera_t1(pair, self.config),
+            inputs.deforming, flow_camera_t1(pair, self.config), target.depth_change is not None,
         )
 
     def feature_pixels(self) -> Tensor | None:
@@ -317,7 +318,8 @@ class FlowMatchingLoss(LossTerm):
             return render.rgb.new_zeros(()), {}
         (_, target), self._pending = self._pending, None
         flow_g, flow_v, _ = decode_flows(features, render.alpha)
-        result = lpfm_loss(flow_g, flow_v, target, render.alpha, self.config)
+        depth_changes = decode_depth_changes(features, render.alpha) if target.depth_change is not None else None
+        result = lpfm_loss(flow_g, flow_v, target, render.alpha, self.config, depth_changes)
         return self.config.lambda_lpfm * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}
 
     def observe(self, inputs: StepInputs, render: RenderOutput) -> None:

@@ -90,9 +90,11 @@ class Trainer:
         retain_freed_memory()  # a step's large temporaries would otherwise be re-faulted from the OS every step
         seed_everything(config.optim.seed)
         self.extent = float(scene.bounds.extent)
-        if config.optim.lambda_depth > 0 and not any(f.depth is not None for f in scene.train):
-            raise ValueError(f"--optim.lambda_depth {config.optim.lambda_depth}: {scene.root} has no depth maps for its training frames "
-                             "(depth/<frame file name>.npy)")
+        for option, weight in (("--optim.lambda_depth", config.optim.lambda_depth),
+                               ("--flow.lambda_depth_change", config.flow.lambda_depth_change if config.flow.enabled else 0.0)):
+            if weight > 0 and not any(f.depth is not None for f in scene.train):
+                raise ValueError(f"{option} {weight}: {scene.root} has no depth maps for its training frames "
+                                 "(depth/<frame file name>.npy)")
         self.model = model or DynamicGaussians.from_scene(
             scene, config.gaussians, config.deformation, config.material if config.needs_material_field else None,
             config.physics.time_scale,

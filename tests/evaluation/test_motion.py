@@ -184,6 +184,36 @@ def test_a_wrong_field_velocity_shows_in_the_velocity_errors_only(tmp_path):
     assert bare.flow.velocity_flow_epe is None and bare.velocity.field_rel is None and bare.flow.motion_flow_epe is not None
 
 
+def test_velocity_errors_split_along_and_across_the_camera_rays(tmp_path):
+    truth, frames = write_truth(tmp_path)
+    depth_error = torch.tensor([0.0, 0.0, 0.5])  # v wrong along the camera's axis only (world units / dataset time)
+    v = evaluate_motion(plane_model((VELOCITY + depth_error) / S), frames, truth).velocity
+    points = torch.from_numpy(truth.vertices.positions).reshape(-1, 3).double()  # camera at the origin
+    rays = points / points.norm(dim=-1, keepdim=True)
+    cos = rays[:, 2]  # cosine between each ray and the error (along z)
+    assert v.field_along_ray == pytest.approx(float((0.5 * cos).mean()), rel=1e-5)
+    assert v.field_across_ray == pytest.approx(float((0.5 * (1 - cos**2).sqrt()).mean()), rel=1e-4)
+    assert v.field_along_ray > 2 * v.field_across_ray  # mostly along the rays
+    assert v.deformation_along_ray == pytest.approx(0.0, abs=1e-4) and v.deformation_across_ray == pytest.approx(0.0, abs=1e-4)
+    along_gt = (rays @ VELOCITY.double()).abs()  # zero velocity: the error is v_gt, here nearly across the rays
+    assert v.zero_along_ray == pytest.approx(float(along_gt.mean()), rel=1e-4)
+    assert v.zero_across_ray == pytest.approx(float((VELOCITY.double().norm() ** 2 - along_gt**2).sqrt().mean()), rel=1e-4)
+    assert "along / across the camera rays" in evaluate_motion(plane_model(None), frames, truth).summary()
+
+
+def test_the_velocity_flow_floor_is_the_true_velocitys_own_first_order_error(tmp_path):
+    # samples one frame interval apart, so the floor is defined at the first; positions move with VELOCITY
+    exact, frames = write_truth(tmp_path / "exact", times=(0.25, 0.25 + DT))
+    assert evaluate_motion(plane_model(None), frames, exact).velocity.truth_velocity_flow_px == pytest.approx(0.0, abs=1e-5)
+    # a stated velocity of twice the motion: its flow overshoots by the true displacement (in-plane, constant depth)
+    doubled, frames = write_truth(tmp_path / "doubled", times=(0.25, 0.25 + DT), v_gt=2 * VELOCITY)
+    floor = evaluate_motion(plane_model(None), frames, doubled).velocity.truth_velocity_flow_px
+    assert floor == pytest.approx(math.hypot(*EXPECTED_PX), rel=1e-4)
+    # no sample one interval later: no floor
+    apart, frames = write_truth(tmp_path / "apart")  # samples at 0.25 and 0.5, 2 intervals apart
+    assert evaluate_motion(plane_model(None), frames, apart).velocity.truth_velocity_flow_px is None
+
+
 def test_truth_at_a_larger_resolution_is_resized_to_the_images(tmp_path):
     truth, frames = write_truth(tmp_path, scale=2)
     f = evaluate_motion(plane_model(None), frames, truth).flow

@@ -14,6 +14,8 @@ import torch
 
 import pidg  # noqa: F401
 from pidg.flow.decomposition import (
+    depth_change_target,
+    smooth_depth,
     FlowTarget,
     backproject,
     decompose_backward_flow,
@@ -239,3 +241,49 @@ def test_the_numba_target_on_the_plane_scene_recovers_the_motion():
     check = fast.valid & scene.clean0
     assert check.sum() > 50
     torch.testing.assert_close(fast.flow[check].double(), scene.expected[check], atol=2e-3, rtol=0)
+
+
+# ---- the depth change (--flow.lambda_depth_change) ----------------------------------------------------------------
+def plane_hits_at(camera: Camera, height: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`plane_hits` for the plane z = ``height``."""
+    lifted = Camera(camera.world_to_camera.to(F64) @ torch.tensor(
+        [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, height], [0, 0, 0, 1]], dtype=F64), camera.fx, camera.fy, camera.cx,
+        camera.cy, camera.width, camera.height, camera.near, camera.far)
+    points, depth = plane_hits(lifted)
+    return points + torch.tensor([0.0, 0.0, height], dtype=F64), depth
+
+
+@pytest.mark.parametrize("camera1", [CAM0, CAM1], ids=["static-camera", "moving-camera"])
+def test_depth_change_of_a_plane_moving_in_3d_is_its_motion_along_camera_t_axis(camera1: Camera):
+    m = torch.tensor([0.1, -0.05, 0.3], dtype=F64)  # the whole plane z = 0 moves by m: to z = 0.3
+    x0, depth0 = plane_hits(CAM0)
+    _, depth1 = plane_hits_at(camera1, 0.3)
+    forward = project(camera1, x0 + m) - pixel_centers(H, W, F64)
+    valid = torch.ones(H, W, dtype=torch.bool)
+    change, scale = depth_change_target(depth0, depth1, CAM0, camera1, forward, valid)
+    axis = CAM0.world_to_camera.to(F64)[2, :3]  # camera t's viewing axis in world coordinates
+    expected_dz = float(axis @ m)  # closed form: every point's camera-t depth changes by m . axis
+    known = scale > 0
+    assert known.float().mean() > 0.4  # the sky, steep depth near the horizon and lookups outside frame t+1 are not
+    torch.testing.assert_close(scale[known], CAM0.fx / depth0[known], rtol=1e-9, atol=0)
+    # exact up to the bilinear lookup of the depth field, which is second order: < 0.5 % of the change here
+    torch.testing.assert_close(change[known] / scale[known], torch.full_like(change[known], expected_dz), atol=1e-3, rtol=0)
+    assert abs(expected_dz) > 0.1  # the plane really moves along the axis
+    assert (change[~known] == 0).all() and (scale[~known] == 0).all()
+    # only supervised pixels get a depth change
+    none, _ = depth_change_target(depth0, depth1, CAM0, camera1, forward, torch.zeros_like(valid))
+    assert (none == 0).all()
+
+
+def test_depth_change_is_unknown_across_depth_edges_and_where_depth_is_missing():
+    depth = torch.full((H, W), 4.0, dtype=F64)
+    depth[:, W // 2:] = 6.0  # an occluding edge between columns W/2 - 1 and W/2
+    depth[:5, :5] = 0.0  # unknown (dataset depth maps mark it 0)
+    smooth = smooth_depth(depth, near=0.01)
+    assert not smooth[:, W // 2 - 1 : W // 2 + 1].any() and smooth[10:, W // 2 - 3].all() and smooth[10:, W // 2 + 2].all()
+    assert not smooth[:5, :5].any() and smooth[10:, 10].all()
+    assert smooth_depth(depth, near=0.01, tolerance=0.6)[10:, W // 2 - 1 : W // 2 + 1].all()  # 4 vs 6: a 50 % range
+    still = torch.zeros(H, W, 2, dtype=F64)
+    change, scale = depth_change_target(depth, depth, CAM0, CAM0, still, torch.ones(H, W, dtype=torch.bool))
+    assert (scale[:, W // 2 - 1 : W // 2 + 1] == 0).all() and (scale[:5, :5] == 0).all()
+    assert change[scale > 0].abs().max() < 1e-9  # nothing moved

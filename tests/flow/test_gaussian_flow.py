@@ -8,8 +8,10 @@ import torch
 
 import pidg  # noqa: F401  (before torch settings matter)
 from pidg.flow.gaussian_flow import (
+    decode_depth_changes,
     decode_flows,
     deformation_matrix,
+    flow_channel_count,
     flow_features,
     gaussian_flow_features,
     inv_sqrtm_2x2,
@@ -179,15 +181,20 @@ def test_velocity_flow_of_gaussian_moving_with_known_velocity():
     torch.testing.assert_close(flow_v[seen] - flow_g[seen], (mu_v[0] - mu0).expand(int(seen.sum()), 2))
 
 
-def test_two_gaussians_flow_is_normalised_weighted_average():
-    """flow(p) = sum_i w_i flow_i(p) / sum_i w_i with the compositing weights (the K -> infinity top-K form)."""
-    cam = camera()
-    g0 = {
+def two_gaussians() -> dict[str, torch.Tensor]:
+    """Two overlapping Gaussians at different depths."""
+    return {
         "means": torch.tensor([[-0.1, 0.0, 0.0], [0.15, 0.05, 0.3]], dtype=F64),
         "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.8, 0.2, 0.1, 0.0]], dtype=F64),
         "scales": torch.tensor([[0.25, 0.2, 0.2], [0.2, 0.3, 0.2]], dtype=F64),
         "opacities": torch.tensor([0.7, 0.8], dtype=F64),
     }
+
+
+def test_two_gaussians_flow_is_normalised_weighted_average():
+    """flow(p) = sum_i w_i flow_i(p) / sum_i w_i with the compositing weights (the K -> infinity top-K form)."""
+    cam = camera()
+    g0 = two_gaussians()
     shift = torch.tensor([[0.15, 0.0, 0.0], [0.0, -0.1, 0.0]], dtype=F64)
     g1 = {**g0, "means": g0["means"] + shift, "scales": g0["scales"] * torch.tensor([[1.0], [1.3]], dtype=F64)}
     feats = gaussian_flow_features(cam, *(g0[k] for k in ("means", "quats", "scales", "opacities")),
@@ -225,7 +232,8 @@ def test_culled_and_degenerate_gaussians_carry_no_flow():
     assert torch.isfinite(feats).all()
 
 
-def test_flow_features_gradient_reaches_both_times():
+@pytest.mark.parametrize("depth_change", [False, True])
+def test_flow_features_gradient_reaches_both_times(depth_change: bool):
     cam = camera()
     g0 = one_gaussian()
     means1 = (g0["means"] + 0.05).requires_grad_(True)
@@ -234,7 +242,8 @@ def test_flow_features_gradient_reaches_both_times():
     velocities = torch.tensor([[0.1, 0.2, 0.0]], dtype=F64, requires_grad=True)
 
     def feats(m0, m1, s1, v):
-        return gaussian_flow_features(cam, m0, g0["quats"], g0["scales"], g0["opacities"], m1, g0["quats"], s1, v, 0.5)
+        return gaussian_flow_features(cam, m0, g0["quats"], g0["scales"], g0["opacities"], m1, g0["quats"], s1, v, 0.5,
+                                      depth_change=depth_change)
 
     assert torch.autograd.gradcheck(feats, (means0, means1, scales1, velocities), eps=1e-6, atol=1e-6)
 
@@ -288,3 +297,46 @@ def test_total_flow_of_a_static_surface_is_the_camera_induced_flow():
     # the motion flow of the same static Gaussians: camera motion cancels
     motion = gaussian_flow_features(cam0, g["means"], g["quats"], g["scales"], g["opacities"], g["means"], g["quats"], g["scales"])
     assert motion.abs().max() < 1e-9
+
+
+# ---- depth-change channels (--flow.lambda_depth_change) -------------------------------------------------------------
+def camera_depth(cam: Camera, points: torch.Tensor) -> torch.Tensor:
+    """Camera z of world points, written out from the world-to-camera matrix (not through project_points)."""
+    w2c = cam.world_to_camera.to(F64)
+    return points @ w2c[2, :3] + w2c[2, 3]
+
+
+def test_depth_change_channels_are_each_gaussians_camera_t_depth_change_composited():
+    cam = camera()
+    g0 = two_gaussians()
+    g1 = {**g0, "means": g0["means"] + torch.tensor([[0.05, 0.0, 0.2], [0.0, -0.1, -0.3]], dtype=F64)}
+    v, dt = torch.tensor([[0.1, 0.0, 0.6], [0.0, 0.2, -0.4]], dtype=F64), 0.5
+    args = (cam, *(g0[k] for k in ("means", "quats", "scales", "opacities")), g1["means"], g1["quats"], g1["scales"])
+    feats = gaussian_flow_features(*args, v, dt, depth_change=True)
+    assert feats.shape == (2, flow_channel_count(velocity=True, depth_change=True)) == (2, 10)
+    torch.testing.assert_close(feats[:, :8], gaussian_flow_features(*args, v, dt))  # the flows are unchanged
+    z0 = camera_depth(cam, g0["means"])
+    torch.testing.assert_close(feats[:, 8], camera_depth(cam, g1["means"]) - z0)
+    torch.testing.assert_close(feats[:, 9], camera_depth(cam, g0["means"] + v * dt) - z0)
+    # composited: sum_i w_i dz_i / sum_i w_i, with the weights rendered as one-hot channels
+    out = rasterize(g0["means"], g0["quats"], g0["opacities"], torch.ones(2, 3, dtype=F64), cam, scales=g0["scales"],
+                    features=torch.cat([feats, torch.eye(2, dtype=F64)], dim=-1), backend="torch")
+    dz, dz_v = decode_depth_changes(out.features[..., :10], out.alpha)
+    weights = out.features[..., 10:12]
+    seen = out.alpha > 0.02
+    torch.testing.assert_close(dz[seen], ((weights @ feats[:, 8]) / out.alpha)[seen])
+    torch.testing.assert_close(dz_v[seen], ((weights @ feats[:, 9]) / out.alpha)[seen])
+    # without velocities: 7 channels, one depth change
+    seven = gaussian_flow_features(*args, depth_change=True)
+    assert seven.shape == (2, 7) and torch.equal(seven[:, 6], feats[:, 8])
+    assert decode_flows(out.features[..., :10], out.alpha)[1] is not None
+
+
+def test_depth_change_channels_need_the_motion_flow_and_a_layout_that_has_them():
+    cam = camera()
+    g = one_gaussian()
+    with pytest.raises(ValueError, match="motion flow"):
+        gaussian_flow_features(cam, g["means"], g["quats"], g["scales"], g["opacities"], g["means"], g["quats"],
+                               g["scales"], camera_t1=cam, depth_change=True)
+    with pytest.raises(ValueError, match="no depth-change channels"):
+        decode_depth_changes(torch.zeros(H, W, 8), torch.ones(H, W))

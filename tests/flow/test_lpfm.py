@@ -93,3 +93,29 @@ def test_end_point_error():
     assert end_point_error(flow, gt, torch.zeros(H, W, dtype=torch.bool)).item() == 0.0
     with pytest.raises(ValueError):
         end_point_error(flow.permute(2, 0, 1), gt)
+
+
+def test_depth_change_error_is_added_in_pixel_equivalents_over_known_pixels():
+    target, alpha = setup()  # rows 0-2 supervised
+    scale = torch.zeros(H, W)
+    scale[1:] = 50.0  # depth change known on rows 1-4 (px per world unit): rows 1-2 of the supervised ones
+    change = torch.full((H, W), 5.0) * (scale > 0)  # 0.1 world units towards the far side, in px
+    target = FlowTarget(target.flow, target.valid, change, scale)
+    config = FlowConfig(lambda_gaussian=0.5, lambda_velocity=0.25, lambda_depth_change=2.0)
+    dz_g = torch.full((H, W), 0.1, requires_grad=True)  # right
+    dz_v = torch.full((H, W), 0.04, requires_grad=True)  # 0.06 world units short: 3 px-equivalents
+    result = lpfm_loss(target.flow, target.flow, target, alpha, config, (dz_g, dz_v))
+    assert result.loss.item() == pytest.approx(2.0 * 0.25 * 3.0)
+    assert result.depth_change_error == pytest.approx(3.0) and "depth_change_error" in result.scalars()
+    result.loss.backward()
+    assert dz_v.grad is not None and (dz_v.grad[0] == 0).all() and (dz_v.grad[3:] == 0).all()  # unknown / unsupervised
+    torch.testing.assert_close(dz_v.grad[1:3], torch.full((2, W), -2.0 * 0.25 * 50.0 / (2 * W)))
+    # off by default (the paper's loss), and ignored when the target carries no depth change
+    plain = lpfm_loss(target.flow, target.flow, target, alpha, FlowConfig(), (dz_g, dz_v))
+    assert plain.loss.item() == 0.0 and plain.depth_change_error is None
+    assert lpfm_loss(target.flow, target.flow, setup()[0], alpha, config, (dz_g, dz_v)).depth_change_error is None
+
+
+def test_depth_change_needs_the_motion_target():
+    with pytest.raises(ValueError, match="lambda_depth_change 1.0 needs --flow.target motion"):
+        FlowConfig(lambda_depth_change=1.0, target="total")

@@ -18,6 +18,8 @@ from pidg.flow.optical_flow import (
     FlowEstimatorUnavailable,
     forward_backward_consistency,
     make_estimator,
+    pixel_centers,
+    upsampled,
 )
 from pidg.flow.preprocess import INDEX_FILE, preprocess_flow
 
@@ -44,6 +46,36 @@ def test_estimators_recover_a_translation(estimator: str):
     assert flow.shape == (50, 70, 2) and flow.dtype == np.float32
     inner = flow[10:-10, 10:-10].reshape(-1, 2)
     np.testing.assert_allclose(np.median(inner, axis=0), [3.0, 2.0], atol=0.25)
+
+
+def test_upsampled_estimation_brings_the_flow_back_to_the_image_grid():
+    """The wrapper's bookkeeping, with fake estimators: a flow of c high-resolution pixels is c / k image pixels,
+    and a field that is the high-resolution pixel centres averages to the image's pixel centres (x k)."""
+    image = textured(6, 8)
+    seen = []
+
+    def constant(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        seen.append(a.shape)
+        return np.full(a.shape[:2] + (2,), 3.0, np.float32)
+
+    def centres(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return pixel_centers(a.shape[0], a.shape[1]).numpy()
+
+    for k in (2, 3):
+        np.testing.assert_allclose(upsampled(constant, k)(image, image), np.full((6, 8, 2), 3.0 / k), rtol=1e-6)
+        assert seen[-1] == (6 * k, 8 * k, 3)
+        np.testing.assert_allclose(upsampled(centres, k)(image, image), pixel_centers(6, 8).numpy(), atol=1e-5)
+    assert upsampled(constant, 1) is constant
+
+
+def test_upsampled_dis_recovers_a_translation_and_keys_its_cache_apart():
+    big = textured(80, 100)
+    image0, image1 = big[10:60, 10:80], big[8:58, 7:77]  # content moves by (+3, +2) pixels from 0 to 1
+    estimator = make_estimator(FlowConfig(upsample=2))
+    flow = estimator(image0, image1)
+    assert flow.shape == (50, 70, 2)
+    np.testing.assert_allclose(np.median(flow[10:-10, 10:-10].reshape(-1, 2), axis=0), [3.0, 2.0], atol=0.25)
+    assert estimator.settings["upsample"] == 2 and "upsample" not in make_estimator(FlowConfig(upsample=1)).settings
 
 
 def test_tvl1_is_available():

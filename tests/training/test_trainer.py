@@ -16,11 +16,16 @@ from pidg.training.trainer import Trainer
 
 
 @pytest.fixture(scope="module")
-def scene():
+def rgbd_scene():
+    """The procedural scene with its true depth maps."""
+    return make_procedural_scene(ProceduralSceneConfig(n_train=8, n_test=2, width=40, height=40, n_gaussians=1500, n_init_points=400))
+
+
+@pytest.fixture(scope="module")
+def scene(rgbd_scene):
     """The procedural scene as monocular RGB data: its depth maps dropped (tests that want depth add their own)."""
-    made = make_procedural_scene(ProceduralSceneConfig(n_train=8, n_test=2, width=40, height=40, n_gaussians=1500, n_init_points=400))
-    splits = {name: [dataclasses.replace(f, depth=None) for f in frames] for name, frames in made.splits.items()}
-    return dataclasses.replace(made, splits=splits)
+    splits = {name: [dataclasses.replace(f, depth=None) for f in frames] for name, frames in rgbd_scene.splits.items()}
+    return dataclasses.replace(rgbd_scene, splits=splits)
 
 
 def tiny_config(out_dir, iterations=16) -> TrainConfig:
@@ -117,6 +122,21 @@ def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh)
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), name
     for name, p in full.model.gaussians.params.items():
         assert torch.allclose(p, resumed.model.gaussians.params[name], atol=1e-5, rtol=1e-4), name
+
+
+def test_the_depth_change_term_trains_v_along_the_rays_where_the_data_has_depth(scene, rgbd_scene, tmp_path):
+    cfg = physics_flow_config(tmp_path, iterations=8)
+    cfg.flow = dataclasses.replace(cfg.flow, lambda_depth_change=1.0)
+    with pytest.raises(ValueError, match="lambda_depth_change 1.0: .* has no depth maps for its training frames"):
+        Trainer(cfg, scene)
+    trainer = Trainer(cfg, rgbd_scene)
+    trainer.train()
+    errors = [h["lpfm_depth_change_error"] for h in trainer.history if "lpfm_depth_change_error" in h]
+    assert errors and all(e >= 0.0 for e in errors)
+    targets = [c.target for c in next(term for term in trainer.loss_terms if term.name == "lpfm")._targets.values()]
+    assert targets and all(t.depth_scale is not None for t in targets)
+    assert any(bool((t.depth_scale > 0).any()) for t in targets)
+    assert not any(bool((t.depth_scale > 0)[~t.valid].any()) for t in targets)  # only where the flow is supervised
 
 
 def test_total_flow_target_is_the_optical_flow_and_is_built_once(scene, tmp_path):
