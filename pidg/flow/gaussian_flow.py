@@ -119,11 +119,18 @@ def decode_flows(
     m, b_g, b_v = features[..., : 8 if velocity else 6].split([4, 2, 2 if velocity else 0], dim=-1)  # split: one backward
     m = m.reshape(h, w, 2, 2)
     mp = (m @ p.unsqueeze(-1)).squeeze(-1)
-    valid = alpha > min_alpha
-    inv_alpha = torch.where(valid, 1.0 / alpha.clamp_min(min_alpha), torch.zeros_like(alpha)).unsqueeze(-1)
+    valid, inv_alpha = _inverse_alpha(alpha, min_alpha)
+    inv_alpha = inv_alpha.unsqueeze(-1)
     flow_g = (mp + b_g) * inv_alpha
     flow_v = (mp + b_v) * inv_alpha if velocity else None
     return flow_g, flow_v, valid
+
+
+def _inverse_alpha(alpha: Tensor, min_alpha: float) -> tuple[Tensor, Tensor]:
+    """Where a pixel has flow (alpha > ``min_alpha``) and 1 / alpha there (0 elsewhere): composited channels divided
+    by it are the normalised-weight averages of the Gaussians' values."""
+    valid = alpha > min_alpha
+    return valid, torch.where(valid, 1.0 / alpha.clamp_min(min_alpha), torch.zeros_like(alpha))
 
 
 def _check_rendered(features: Tensor, h: int, w: int) -> None:
@@ -138,8 +145,7 @@ def decode_depth_changes(features: Tensor, alpha: Tensor, min_alpha: float = DEC
     _check_rendered(features, h, w)
     if features.shape[-1] not in (7, 10):
         raise ValueError(f"features carry no depth-change channels ({features.shape[-1]} channels; 7 or 10 do)")
-    valid = alpha > min_alpha
-    inv_alpha = torch.where(valid, 1.0 / alpha.clamp_min(min_alpha), torch.zeros_like(alpha))
+    _, inv_alpha = _inverse_alpha(alpha, min_alpha)
     if features.shape[-1] == 7:
         return features[..., 6] * inv_alpha, None
     dz = features[..., 8:10] * inv_alpha.unsqueeze(-1)
