@@ -51,7 +51,9 @@ from pidg.models.deformation.base import (
     NormalizedPositions,
     times_column,
 )
+from pidg.models.deformation.hash_grid import HashGridBackend
 from pidg.models.jet import FieldJet
+from pidg.models.planes import lookup_planes
 
 GROUP_EMBEDDING = "embedding"  # the index embedding table: its own learning rate
 
@@ -95,6 +97,9 @@ class MaterialFieldConfig:
     """The velocity head starts at PyTorch's default init times this (v = sigma = 0 would be a stationary point)."""
     stress: bool = True
     """False: the paper's "no stress" ablation, sigma == 0."""
+    backend: HashGridBackend = "auto"
+    """Implementation of the plane lookups (:mod:`pidg.models.planes`): the numba kernel on float32 CPU tensors, the
+    torch reference otherwise (CUDA); cpu or torch force one."""
 
     def __post_init__(self) -> None:
         validate_config(self)
@@ -127,41 +132,12 @@ ACTIVATION_VALUES: dict[Activation, Callable[[Tensor], Tensor]] = {"tanh": torch
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# plane lookup
+# stress and plane-axis helpers (the plane lookup itself: pidg.models.planes)
 # ---------------------------------------------------------------------------------------------------------------
 def stress_magnitude(sigma: Tensor) -> Tensor:
     """|sigma|_F [N] of symmetric stresses given by their six components [N, 6] (xx, yy, zz, xy, xz, yz): the
     off-diagonal ones count twice."""
     return (sigma[:, :3].square().sum(-1) + 2.0 * sigma[:, 3:].square().sum(-1)).sqrt()
-
-
-def plane_lookup(planes: Tensor, pa: Tensor, pb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Bilinear lookup of K planes with its analytic derivatives.
-
-    planes [K, Ra, Rb, C]; pa, pb [M, K]: continuous cell coordinates (0 and R - 1 are the first and last grid
-    lines). Returns the values and their derivatives d/dpa, d/dpb, each [M, K, C].
-
-    Borders: the cell index is clamped to [0, R - 2] but the fractional coordinate f = p - index is *not*
-    clamped, so outside the planes the lookup continues the border cell's bilinear function (linear
-    extrapolation). Values stay continuous, and d/dpa, d/dpb and the gradient with respect to p stay non-zero
-    outside the box; clamping p instead would freeze every particle that leaves the box (zero derivative, zero
-    gradient), which is exactly where deformed particles go. Particles far outside are extrapolated linearly,
-    which the MLP's saturating activation keeps bounded.
-    """
-    k, ra, rb, c = planes.shape
-    ia = pa.detach().floor().clamp(0, ra - 2)
-    ib = pb.detach().floor().clamp(0, rb - 2)
-    fa, fb = (pa - ia).unsqueeze(-1), (pb - ib).unsqueeze(-1)
-    first = torch.arange(k, device=planes.device) * (ra * rb) + ia.long() * rb + ib.long()  # [M, K]
-    corner_offsets = torch.tensor([0, 1, rb, rb + 1], device=planes.device)  # (a, b), (a, b+1), (a+1, b), (a+1, b+1)
-    rows = (first.unsqueeze(-1) + corner_offsets).reshape(-1)
-    corners = planes.reshape(k * ra * rb, c).index_select(0, rows).reshape(*first.shape, 4, c)
-    v00, v01, v10, v11 = corners.unbind(-2)
-    along_a_low, along_a_high = v10 - v00, v11 - v01
-    d_pa = along_a_low + fb * (along_a_high - along_a_low)
-    d_pb = (v01 - v00) + fa * (along_a_high - along_a_low)
-    value = v00 + fb * (v01 - v00) + fa * d_pa
-    return value, d_pa, d_pb
 
 
 def _axis_scales(axes: tuple[tuple[int, ...], tuple[int, ...]], scale: Tensor) -> tuple[Tensor, Tensor]:
@@ -304,12 +280,16 @@ class MaterialField(nn.Module):
         scale = torch.cat([(0.5 * (rs - 1)) / half, half.new_full((1,), float(rt - 1))])
         return p_space, p_time, scale
 
-    def _plane_lookups(self, x: Tensor, times: Tensor) -> tuple[tuple[Tensor, Tensor, Tensor], Tensor]:
-        """Values, d/dpa, d/dpb of the six planes [M, 6, C] (XY, XZ, YZ, XT, YT, ZT) and dp/d(x, y, z, t)."""
+    def _plane_lookups(self, x: Tensor, times: Tensor, derivatives: bool = True) -> tuple[tuple[Tensor, Tensor | None, Tensor | None], Tensor]:
+        """Values, d/dpa, d/dpb of the six planes [M, 6, C] (XY, XZ, YZ, XT, YT, ZT; the derivatives None without
+        ``derivatives``) and dp/d(x, y, z, t)."""
         p_space, p_time, scale = self._plane_coordinates(x, times)
-        spatial = plane_lookup(self.spatial_planes, p_space[:, list(SPATIAL_AXES[0])], p_space[:, list(SPATIAL_AXES[1])])
-        temporal = plane_lookup(self.temporal_planes, p_space, p_time[:, None].expand(-1, 3))
-        return tuple(torch.cat([s, t], dim=1) for s, t in zip(spatial, temporal)), scale  # type: ignore[return-value]
+        backend = self.config.backend
+        spatial = lookup_planes(self.spatial_planes, p_space[:, list(SPATIAL_AXES[0])], p_space[:, list(SPATIAL_AXES[1])], derivatives, backend)
+        temporal = lookup_planes(self.temporal_planes, p_space, p_time[:, None].expand(-1, 3), derivatives, backend)
+        if not derivatives:
+            return (torch.cat([spatial[0], temporal[0]], dim=1), None, None), scale
+        return tuple(torch.cat([s, t], dim=1) for s, t in zip(spatial, temporal)), scale  # type: ignore[return-value,arg-type]
 
     def _fourier(self, times: Tensor) -> tuple[Tensor, Tensor]:
         """sin / cos(omega_k t_hat) [M, 2n] and its t-derivative [M, 2n] (t_hat = 2t - 1)."""
@@ -323,7 +303,7 @@ class MaterialField(nn.Module):
         return F.embedding(index, self.index_embedding, sparse=True)
 
     def _features(self, x: Tensor, times: Tensor, index: Tensor) -> Tensor:
-        (planes, _, _), _ = self._plane_lookups(x, times)
+        (planes, _, _), _ = self._plane_lookups(x, times, derivatives=False)
         fourier, _ = self._fourier(times)
         embedding = self._embed(index)
         return torch.cat([planes.flatten(1), fourier, embedding], dim=-1)
@@ -331,6 +311,7 @@ class MaterialField(nn.Module):
     def _features_with_tangents(self, x: Tensor, times: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
         """Features [M, D] and their derivatives along x, y, z, t [4, M, tangent_dim] (the embedding's are 0)."""
         (planes, d_pa, d_pb), scale = self._plane_lookups(x, times)
+        assert d_pa is not None and d_pb is not None
         (sa_space, sb_space), (sa_time, sb_time) = _axis_scales(SPATIAL_AXES, scale), _axis_scales(TEMPORAL_AXES, scale)
         scale_a, scale_b = torch.cat([sa_space, sa_time], dim=1), torch.cat([sb_space, sb_time], dim=1)  # [4, 6]
         m = x.shape[0]

@@ -4,7 +4,8 @@ import torch
 from pidg.models.deformation.base import Bounds
 from pidg.models.gaussians import GaussianModel
 from pidg.models.jet import FieldJet, jet_from_function
-from pidg.models.material_field import GROUP_EMBEDDING, MaterialField, MaterialFieldConfig, plane_lookup, stress_magnitude
+from pidg.models.material_field import GROUP_EMBEDDING, MaterialField, MaterialFieldConfig, stress_magnitude
+from pidg.models.planes import plane_lookup
 from pidg.physics import PhysicsConfig
 
 JET_FIELDS = ("v", "sigma", "dv_dx", "dv_dt", "dsigma_dx")
