@@ -69,9 +69,10 @@ def supervised_flow_channels(
     out = state_t.means.new_zeros(n, channels)
     if rows.numel() == 0:
         return out
-    sub_t = DeformedGaussians(state_t.means[rows], state_t.quats[rows], state_t.log_scales[rows])
+    invariant = None if state_t.invariant is None else state_t.invariant[rows]
+    sub_t = DeformedGaussians(state_t.means[rows], state_t.quats[rows], state_t.log_scales[rows], invariant=invariant)
     if deforming:
-        sub_t1 = model.at(t1, rows=rows)
+        sub_t1 = model.at(t1, rows=rows, reuse=sub_t)
     else:
         p = model.gaussians.params
         sub_t1 = DeformedGaussians(p["means"][rows], p["quats"][rows], p["log_scales"][rows])

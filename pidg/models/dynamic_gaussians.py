@@ -138,10 +138,14 @@ class DynamicGaussians:
         p = self.gaussians.params
         return DeformedGaussians(p["means"], p["quats"], p["log_scales"])
 
-    def at(self, t: float | Tensor, regularize: bool = False, rows: Tensor | None = None) -> DeformedGaussians:
+    def at(
+        self, t: float | Tensor, regularize: bool = False, rows: Tensor | None = None, reuse: DeformedGaussians | None = None
+    ) -> DeformedGaussians:
         """Means, quaternions and log-scales at dataset time ``t`` (static Gaussians stay canonical once decoupled);
         with ``regularize``, also the deformation's regulariser for this pass (training). ``rows`` [M] (indices):
-        only those Gaussians, in that order (a loss that needs a few of them pays for a few)."""
+        only those Gaussians, in that order (a loss that needs a few of them pays for a few). ``reuse``: the same
+        Gaussians (those rows, in that order) at another time, from this step's parameters: the deformation takes
+        its time-independent features from it instead of computing them again (``DeformedGaussians.invariant``)."""
         p = self.gaussians.params
         means, quats, log_scales = p["means"], p["quats"], p["log_scales"]
         dynamic = self.dynamic_mask
@@ -149,7 +153,8 @@ class DynamicGaussians:
         if rows is not None:
             means, quats, log_scales = means[rows], quats[rows], log_scales[rows]
             static = None if static is None else static[rows]
-        return self.deformation(means, quats, log_scales, t, static_mask=static, regularize=regularize)
+        invariant = None if reuse is None else reuse.invariant
+        return self.deformation(means, quats, log_scales, t, static_mask=static, regularize=regularize, invariant=invariant)
 
     def motion_velocity(self, t: float, h: float, rows: Tensor | None = None) -> Tensor:
         """The deformation's own velocity dx/dt [N, 3] at dataset time ``t``, in world units per unit of dataset time:
@@ -158,7 +163,8 @@ class DynamicGaussians:
         if not h > 0:
             raise ValueError(f"motion_velocity: the step h must be > 0, got {h}")
         t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
-        return (self.at(t1, rows=rows).means - self.at(t0, rows=rows).means) / (t1 - t0)
+        start = self.at(t0, rows=rows)
+        return (self.at(t1, rows=rows, reuse=start).means - start.means) / (t1 - t0)
 
     # ---- rendering -------------------------------------------------------------------------------------------
     def render(self, camera: Camera, t: float, features: Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:

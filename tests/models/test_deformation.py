@@ -273,6 +273,57 @@ def test_grid4d_attention_cache_at_render_time():
         assert len(calls) == 5
 
 
+@pytest.mark.parametrize("static", [False, True])
+def test_grid4d_pass_at_another_time_reuses_the_attention_with_the_same_values_and_gradients(static):
+    """A pass at t1 over the same Gaussians takes the pass at t's attention (``invariant``): the same deformed
+    Gaussians and the same gradient for every parameter and position as a pass that encodes G_xyz again, and
+    G_xyz runs once instead of twice. Static rows (decoupled) are skipped by both passes."""
+    model = Grid4D(SMALL_GRID4D, BOUNDS)
+    randomize_heads(model)
+    with torch.no_grad():
+        model.grid_xyz.table.copy_(torch.randn(model.grid_xyz.table.shape) * 0.1)
+    means, quats, log_scales = canonical()
+    static_mask = (torch.arange(means.shape[0]) % 3 == 0) if static else None
+    calls = []
+    original = model.encode_spatial
+    model.encode_spatial = lambda u: (calls.append(u.shape[0]), original(u))[1]  # type: ignore[method-assign]
+
+    def run(reuse: bool):
+        model.zero_grad()
+        x = means.clone().requires_grad_(True)
+        calls.clear()
+        first = model(x, quats, log_scales, 0.3, static_mask=static_mask)
+        second = model(x, quats, log_scales, 0.7, static_mask=static_mask, invariant=first.invariant if reuse else None)
+        loss = (first.means.square().sum() + second.means.sin().sum() + second.quats.sum() + second.log_scales.square().sum())
+        loss.backward()
+        grads = [x.grad] + [p.grad.clone() for p in model.parameters()]
+        return second, grads, list(calls)
+
+    fresh, fresh_grads, fresh_calls = run(reuse=False)
+    reused, reused_grads, reused_calls = run(reuse=True)
+    assert len(fresh_calls) == 2 and len(reused_calls) == 1
+    for a, b in ((fresh.means, reused.means), (fresh.quats, reused.quats), (fresh.log_scales, reused.log_scales)):
+        assert torch.equal(a, b)
+    for a, b in zip(fresh_grads, reused_grads):  # float32 sums in another order: equal to rounding
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5 * float(a.abs().max()))
+    assert fresh.invariant.shape == (means.shape[0], SMALL_GRID4D.width)
+    if static:  # the rows a static mask skips carry no features
+        assert fresh.invariant[static_mask].abs().max() == 0
+    with pytest.raises(ValueError, match=r"one row per Gaussian \(300\)"):
+        model(means, quats, log_scales, 0.7, invariant=fresh.invariant[:10])
+
+
+@pytest.mark.parametrize("kind", ["mlp", "identity"])
+def test_models_without_time_independent_features_return_none_and_ignore_them(kind):
+    model = build_deformation(CONFIGS[kind], BOUNDS)
+    randomize_heads(model)
+    means, quats, log_scales = canonical()
+    out = model(means, quats, log_scales, 0.3)
+    assert out.invariant is None
+    again = model(means, quats, log_scales, 0.3, invariant=torch.randn(means.shape[0], 5))
+    assert torch.equal(again.means, out.means) and torch.equal(again.log_scales, out.log_scales)
+
+
 def test_grid4d_float64_uses_the_reference():
     model = Grid4D(SMALL_GRID4D, BOUNDS).double()
     randomize_heads(model)

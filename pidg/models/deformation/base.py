@@ -1,10 +1,13 @@
 """The interface every deformation model implements: canonical Gaussians + time -> Gaussians at that time.
 
 Kept small on purpose so that Grid4D, the MLP baseline and "no deformation" are interchangeable from the config:
-``forward(means, quats, log_scales, t, static_mask, regularize) -> DeformedGaussians`` and ``parameter_groups()``
-(so the trainer can give hash grids a larger learning rate than MLPs). A model with a regulariser (Grid4D's
-smoothness term) returns it with the pass that asked for it (``regularize=True``), so a step that deforms to
-several times (t and t+1 for the flow loss) knows which pass each term belongs to.
+``forward(means, quats, log_scales, t, static_mask, regularize, invariant) -> DeformedGaussians`` and
+``parameter_groups()`` (so the trainer can give hash grids a larger learning rate than MLPs). A model with a
+regulariser (Grid4D's smoothness term) returns it with the pass that asked for it (``regularize=True``), so a step
+that deforms to several times (t and t+1 for the flow loss) knows which pass each term belongs to. A model whose
+features of a Gaussian partly do not depend on time (Grid4D's directional attention) returns them with the pass
+(``DeformedGaussians.invariant``), and a pass over the same Gaussians at another time takes them back
+(``invariant=``) instead of computing them again: the same values and gradients for less work.
 
 Conventions shared by the models:
   * quaternions are (w, x, y, z) like the renderer, and need not be normalised (the renderer normalises);
@@ -37,6 +40,9 @@ class DeformedGaussians:
     quats: Tensor  # [N, 4] (w, x, y, z)
     log_scales: Tensor  # [N, 3] log of world units
     regularization: Tensor | None = None  # the model's regulariser for this pass (scalar; None unless asked for)
+    #: [N, D] the model's time-independent features of these Gaussians (Grid4D: its directional attention; None for
+    #: models without any), for a pass over the same Gaussians at another time; rows a static mask skipped are 0
+    invariant: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -145,12 +151,15 @@ class DeformationModel(nn.Module, ABC):
         t: float | Tensor,
         static_mask: Tensor | None = None,
         regularize: bool = False,
+        invariant: Tensor | None = None,
     ) -> DeformedGaussians:
         """Deform canonical Gaussians [N, ...] to time t (a float or [N] times, in [0, 1]).
 
         Rows where ``static_mask`` [N] bool is True are returned unchanged and are not evaluated at all (stage 2
         of PIDG keeps static Gaussians out of the deformation), so they receive no gradient through the model.
-        ``regularize``: also return the model's regulariser on the deformed rows (training).
+        ``regularize``: also return the model's regulariser on the deformed rows (training). ``invariant`` [N, D]:
+        the ``DeformedGaussians.invariant`` of a pass over these same Gaussians (same canonical parameters, any
+        time), used instead of computing them; a model that has none ignores it.
         """
         n = means.shape[0]
         if means.shape != (n, 3) or quats.shape != (n, 4) or log_scales.shape != (n, 3):
@@ -159,26 +168,35 @@ class DeformationModel(nn.Module, ABC):
                 f"{list(means.shape)}, {list(quats.shape)}, {list(log_scales.shape)}"
             )
         times = times_column(t, n, means)
+        if invariant is not None and invariant.shape[0] != n:
+            raise ValueError(f"deformation: invariant features must have one row per Gaussian ({n}), got {list(invariant.shape)}")
         if static_mask is None:
-            return self.deform(means, quats, log_scales, times, regularize)
+            return self.deform(means, quats, log_scales, times, regularize, invariant)
         if static_mask.shape != (n,) or static_mask.dtype != torch.bool:
             raise ValueError(f"deformation: static_mask must be a bool tensor [N] = [{n}], got {static_mask.dtype} {list(static_mask.shape)}")
         rows = torch.nonzero(~static_mask).squeeze(1)
         if rows.numel() == n:
-            return self.deform(means, quats, log_scales, times, regularize)
+            return self.deform(means, quats, log_scales, times, regularize, invariant)
         if rows.numel() == 0:
             return DeformedGaussians(means, quats, log_scales)
-        moved = self.deform(means[rows], quats[rows], log_scales[rows], times[rows], regularize)
+        moved = self.deform(means[rows], quats[rows], log_scales[rows], times[rows], regularize,
+                            None if invariant is None else invariant[rows])
+        kept = moved.invariant
         return DeformedGaussians(
             means.index_copy(0, rows, moved.means.to(means.dtype)),
             quats.index_copy(0, rows, moved.quats.to(quats.dtype)),
             log_scales.index_copy(0, rows, moved.log_scales.to(log_scales.dtype)),
             moved.regularization,
+            None if kept is None else kept.new_zeros(n, kept.shape[1]).index_copy(0, rows, kept),
         )
 
     @abstractmethod
-    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
-        """Deform every row; ``times`` is [N]; with ``regularize``, fill ``regularization`` if the model has one."""
+    def deform(
+        self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False,
+        invariant: Tensor | None = None,
+    ) -> DeformedGaussians:
+        """Deform every row; ``times`` is [N]; with ``regularize``, fill ``regularization`` if the model has one;
+        ``invariant``: as ``forward``'s (models without time-independent features ignore it)."""
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by optimiser group (``GROUP_GRID``, ``GROUP_MLP``); empty groups are left out."""

@@ -20,5 +20,8 @@ class IdentityDeformation(DeformationModel):
         super().__init__()
         self.config = config or IdentityDeformationConfig()
 
-    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
+    def deform(
+        self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False,
+        invariant: Tensor | None = None,
+    ) -> DeformedGaussians:
         return DeformedGaussians(means, quats, log_scales)
