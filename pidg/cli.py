@@ -185,7 +185,8 @@ def _cmd_bench_render(args: argparse.Namespace) -> int:
 def _cmd_bench_quality(args: argparse.Namespace) -> int:
     minutes = args.minutes if args.minutes and args.minutes > 0 else None
     config = _train_config(args, data_path=args.scenes[0])  # the preset follows the first scene's layout
-    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), config, args.downscale, minutes, args.variants)
+    run_quality_bench([Path(p) for p in args.scenes], Path(args.out), config, args.downscale, minutes, args.variants,
+                      seeds=args.seeds)
     return 0
 
 
@@ -382,6 +383,9 @@ def build_parser() -> argparse.ArgumentParser:
     quality.add_argument("--minutes", type=float, default=30.0, help="training time budget per run (0: none, --optim.iterations only)")
     quality.add_argument("--variants", nargs="*", default=None, choices=list(ABLATION_VARIANTS),
                          help="ablation rows per scene (default: the config as given)")
+    quality.add_argument("--seeds", nargs="+", type=int, default=None,
+                         help="train every scene x variant once per seed and print each row's spread over them "
+                              "(mean +- sd, min-max; runs in OUT/SCENE/VARIANT/seedS; default: --optim.seed only)")
     _add_run_options(quality, "SCENE [SCENE ...] ")
     quality.set_defaults(func=_cmd_bench_quality)
 

@@ -139,9 +139,11 @@ def discover_scenes(root: Path | str, layout: str) -> list[Path]:
 def make_jobs(
     scenes: Sequence[Path], variants: Sequence[str | None], base: TrainConfig, out_root: Path, minutes: float | None,
     protocol: Protocol = "interpolation", downscale: str | None = None, integrator: str = "rk4",
+    seeds: Sequence[int] | None = None,
 ) -> list[Job]:
-    """One job per scene x variant: ``base`` + the variant's options, one budget (``minutes`` of training, or
-    ``--optim.iterations`` without it), the base config's seed, a run folder ``OUT/<scene>/<variant>``."""
+    """One job per scene x variant (x seed): ``base`` + the variant's options, one budget (``minutes`` of training,
+    or ``--optim.iterations`` without it), a run folder ``OUT/<scene>/<variant>``. ``seeds``: one job per seed in
+    ``OUT/<scene>/<variant>/seed<S>`` (None: the base config's seed only)."""
     unknown = [v for v in variants if v is not None and v not in ABLATION_VARIANTS]
     if unknown:
         raise ValueError(f"unknown variants {unknown}; known: {', '.join(ABLATION_VARIANTS)}")
@@ -155,12 +157,11 @@ def make_jobs(
             data = dataclasses.replace(data, downscale=parse_downscale(downscale))
         for variant in variants:
             config = apply_overrides(base, ABLATION_VARIANTS[variant]) if variant else base
-            run_dir = Path(out_root) / Path(scene).name / (variant or "")
-            config = dataclasses.replace(
-                config, data=data, optim=dataclasses.replace(config.optim, time_budget_minutes=minutes),
-                output=dataclasses.replace(config.output, dir=run_dir),
-            )
-            jobs.append(Job(str(scene), variant or "-", to_jsonable(config), protocol, nets, integrator))
+            for seed in seeds or [None]:
+                run_dir = Path(out_root) / Path(scene).name / (variant or "") / ("" if seed is None else f"seed{seed}")
+                optim = dataclasses.replace(config.optim, time_budget_minutes=minutes, seed=config.optim.seed if seed is None else seed)
+                job_config = dataclasses.replace(config, data=data, optim=optim, output=dataclasses.replace(config.output, dir=run_dir))
+                jobs.append(Job(str(scene), variant or "-", to_jsonable(job_config), protocol, nets, integrator))
     return jobs
 
 
@@ -168,7 +169,8 @@ def run_job(job: Job) -> list[dict[str, Any]]:
     """Train and evaluate one job; its rows (one, or one per predictor for future prediction). Never raises: a
     failure is a row with ``error`` (the traceback is in ``RUN/error.txt``)."""
     started = time.time()
-    base_row = {"scene": Path(job.scene).name, "variant": job.variant, "protocol": job.protocol, "run_dir": str(job.run_dir)}
+    base_row = {"scene": Path(job.scene).name, "variant": job.variant, "protocol": job.protocol, "run_dir": str(job.run_dir),
+                "seed": job.config["optim"]["seed"]}
     try:
         rows = _train_and_evaluate(job)
     except Exception as err:  # noqa: BLE001 - a failed job is reported in the table, the suite goes on
@@ -187,7 +189,7 @@ def run_job(job: Job) -> list[dict[str, Any]]:
 def crashed_job(job: Job, message: str) -> list[dict[str, Any]]:
     """The row of a job whose worker died before it could report."""
     return [{"scene": Path(job.scene).name, "variant": job.variant, "protocol": job.protocol, "run_dir": str(job.run_dir),
-             "error": message, "git_commit": git_commit(), "config": job.config}]
+             "seed": job.config["optim"]["seed"], "error": message, "git_commit": git_commit(), "config": job.config}]
 
 
 def _train_and_evaluate(job: Job) -> list[dict[str, Any]]:

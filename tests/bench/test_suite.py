@@ -171,3 +171,32 @@ def test_the_ray_executor_runs_jobs_as_tasks_and_keeps_the_others_when_one_fails
         assert result["tables"]["cells"]["PIDG w/o (CMR + LPFM)"]["alpha"]["psnr"] == row["psnr"]
     finally:
         ray.shutdown()
+
+
+def test_seeds_give_one_job_each_and_a_spread_per_scene_and_variant(scenes_root, tmp_path):
+    """``pidg bench quality --seeds``: one run per seed in its own folder, trained with that seed (different
+    Gaussians from the first step: a different run); the spread line is the mean, sample sd and range of the rows."""
+    import statistics
+
+    from pidg.bench.quality import format_table, run_quality_bench, seed_spread
+
+    jobs = make_jobs([scenes_root / "alpha"], ["base", "cmr"], tiny_train_config(), tmp_path / "jobs", None, seeds=[3, 11])
+    assert [(j.variant, j.config["optim"]["seed"], j.run_dir.name) for j in jobs] == [
+        ("base", 3, "seed3"), ("base", 11, "seed11"), ("cmr", 3, "seed3"), ("cmr", 11, "seed11")]
+    logged: list[str] = []
+    rows = run_quality_bench([scenes_root / "alpha"], tmp_path / "q", tiny_train_config(), variants=["base"], minutes=None,
+                             log=logged.append, seeds=[3, 11])
+    assert [r["seed"] for r in rows] == [3, 11] and not any(r.get("error") for r in rows)
+    assert rows[0]["psnr"] != rows[1]["psnr"]  # another seed is another run
+    (entry,) = seed_spread(rows)
+    psnrs = [r["psnr"] for r in rows]
+    assert entry["seeds"] == [3, 11] and entry["failed"] == 0
+    assert entry["psnr"] == pytest.approx({"mean": statistics.fmean(psnrs), "sd": statistics.stdev(psnrs),
+                                           "min": min(psnrs), "max": max(psnrs)})
+    saved = json.loads((tmp_path / "q" / "quality_seeds.json").read_text())
+    assert saved[0]["psnr"]["mean"] == pytest.approx(entry["psnr"]["mean"])
+    table = format_table(rows)
+    assert "base/s3" in table and "base/s11" in table and "alpha base, 2 seeds: psnr" in table
+    assert seed_spread(rows[:1]) == [] and seed_spread([rows[0], {**rows[1], "error": "boom"}]) == []
+    with pytest.raises(ValueError, match="--seeds: distinct"):
+        run_quality_bench([scenes_root / "alpha"], tmp_path / "bad", tiny_train_config(), seeds=[1, 1])
