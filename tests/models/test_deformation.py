@@ -314,14 +314,21 @@ def test_grid4d_pass_at_another_time_reuses_the_attention_with_the_same_values_a
 
 
 @pytest.mark.parametrize("kind", ["mlp", "identity"])
-def test_models_without_time_independent_features_return_none_and_ignore_them(kind):
+def test_models_without_time_independent_features_keep_the_five_argument_deform(kind):
+    """The MLP and identity models (and a user's own, written against the five-argument ``deform``) return no
+    invariant features and are never handed any: the scene model's ``reuse`` passes through them unchanged."""
+    from pidg.models.dynamic_gaussians import DynamicGaussians
+    from pidg.models.gaussians import GaussianModel
+    from pidg.models.time_axis import TimeAxis
+
     model = build_deformation(CONFIGS[kind], BOUNDS)
     randomize_heads(model)
     means, quats, log_scales = canonical()
-    out = model(means, quats, log_scales, 0.3)
-    assert out.invariant is None
-    again = model(means, quats, log_scales, 0.3, invariant=torch.randn(means.shape[0], 5))
-    assert torch.equal(again.means, out.means) and torch.equal(again.log_scales, out.log_scales)
+    first = model(means, quats, log_scales, 0.3)
+    assert first.invariant is None
+    scene_model = DynamicGaussians(GaussianModel.from_points(means, None), model, None, TimeAxis(1.0, 0.1), torch.ones(3))
+    state = scene_model.at(0.3)
+    assert torch.equal(scene_model.at(0.7, reuse=state).means, scene_model.at(0.7).means)
 
 
 def test_grid4d_float64_uses_the_reference():

@@ -227,7 +227,8 @@ def test_physics_time_unit_is_one_training_frame_by_default(scene, tmp_path):
 
 def test_the_smoothness_term_is_the_frame_t_pass_s(scene, tmp_path, monkeypatch):
     """With the flow loss the deformation runs at t and at t+1 in one step: the smoothness term is the frame-t
-    pass's, and the t+1 pass computes none (it used to overwrite the frame-t term)."""
+    pass's, and the t+1 pass computes none (it used to overwrite the frame-t term); the t+1 pass takes the frame-t
+    pass's attention instead of computing it."""
     cfg = physics_flow_config(tmp_path, iterations=20)
     cfg.optim = dataclasses.replace(cfg.optim, static_warmup=0)
     trainer = Trainer(cfg, scene)
@@ -235,9 +236,9 @@ def test_the_smoothness_term_is_the_frame_t_pass_s(scene, tmp_path, monkeypatch)
     original = deformation.forward
     calls = []
 
-    def recording(means, quats, log_scales, t, static_mask=None, regularize=False):
-        out = original(means, quats, log_scales, t, static_mask=static_mask, regularize=regularize)
-        calls.append((float(t), regularize, out.regularization))
+    def recording(means, quats, log_scales, t, static_mask=None, regularize=False, invariant=None):
+        out = original(means, quats, log_scales, t, static_mask=static_mask, regularize=regularize, invariant=invariant)
+        calls.append((float(t), regularize, out.regularization, invariant))
         return out
 
     monkeypatch.setattr(deformation, "forward", recording)
@@ -245,10 +246,10 @@ def test_the_smoothness_term_is_the_frame_t_pass_s(scene, tmp_path, monkeypatch)
     for _ in range(8):
         calls.clear()
         parts = trainer.train_step()
-        (t0, regularized, reg), *rest = calls
-        assert regularized and reg is not None and parts["deform_reg"] == float(reg.detach())
-        assert all(not r and value is None for _, r, value in rest)  # t+1 (flow) passes
-        with_pairs += bool(rest)
+        (t0, regularized, reg, given), *rest = calls
+        assert regularized and reg is not None and parts["deform_reg"] == float(reg.detach()) and given is None
+        assert all(not r and value is None for _, r, value, _ in rest)  # t+1 passes (flow, and target depths)
+        with_pairs += any(inv is not None for *_, inv in rest)  # the flow's t+1 pass reuses the attention
     assert with_pairs >= 5  # 8 frames: every frame but the last starts a flow pair
 
 

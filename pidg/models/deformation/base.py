@@ -158,8 +158,8 @@ class DeformationModel(nn.Module, ABC):
         Rows where ``static_mask`` [N] bool is True are returned unchanged and are not evaluated at all (stage 2
         of PIDG keeps static Gaussians out of the deformation), so they receive no gradient through the model.
         ``regularize``: also return the model's regulariser on the deformed rows (training). ``invariant`` [N, D]:
-        the ``DeformedGaussians.invariant`` of a pass over these same Gaussians (same canonical parameters, any
-        time), used instead of computing them; a model that has none ignores it.
+        the ``DeformedGaussians.invariant`` of a pass of this model over these same Gaussians (same canonical
+        parameters, any time), used instead of computing them.
         """
         n = means.shape[0]
         if means.shape != (n, 3) or quats.shape != (n, 4) or log_scales.shape != (n, 3):
@@ -171,16 +171,16 @@ class DeformationModel(nn.Module, ABC):
         if invariant is not None and invariant.shape[0] != n:
             raise ValueError(f"deformation: invariant features must have one row per Gaussian ({n}), got {list(invariant.shape)}")
         if static_mask is None:
-            return self.deform(means, quats, log_scales, times, regularize, invariant)
+            return self._deform(means, quats, log_scales, times, regularize, invariant)
         if static_mask.shape != (n,) or static_mask.dtype != torch.bool:
             raise ValueError(f"deformation: static_mask must be a bool tensor [N] = [{n}], got {static_mask.dtype} {list(static_mask.shape)}")
         rows = torch.nonzero(~static_mask).squeeze(1)
         if rows.numel() == n:
-            return self.deform(means, quats, log_scales, times, regularize, invariant)
+            return self._deform(means, quats, log_scales, times, regularize, invariant)
         if rows.numel() == 0:
             return DeformedGaussians(means, quats, log_scales)
-        moved = self.deform(means[rows], quats[rows], log_scales[rows], times[rows], regularize,
-                            None if invariant is None else invariant[rows])
+        moved = self._deform(means[rows], quats[rows], log_scales[rows], times[rows], regularize,
+                             None if invariant is None else invariant[rows])
         kept = moved.invariant
         return DeformedGaussians(
             means.index_copy(0, rows, moved.means.to(means.dtype)),
@@ -190,13 +190,20 @@ class DeformationModel(nn.Module, ABC):
             None if kept is None else kept.new_zeros(n, kept.shape[1]).index_copy(0, rows, kept),
         )
 
-    @abstractmethod
-    def deform(
-        self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False,
-        invariant: Tensor | None = None,
+    def _deform(
+        self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool, invariant: Tensor | None
     ) -> DeformedGaussians:
-        """Deform every row; ``times`` is [N]; with ``regularize``, fill ``regularization`` if the model has one;
-        ``invariant``: as ``forward``'s (models without time-independent features ignore it)."""
+        """``deform``, handing ``invariant`` on only when there are some: a model that returns none (the MLP, identity,
+        a user's own) keeps the five-argument ``deform``."""
+        if invariant is None:
+            return self.deform(means, quats, log_scales, times, regularize)
+        return self.deform(means, quats, log_scales, times, regularize, invariant=invariant)  # type: ignore[call-arg]
+
+    @abstractmethod
+    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
+        """Deform every row; ``times`` is [N]; with ``regularize``, fill ``regularization`` if the model has one. A
+        model that returns time-independent features (``DeformedGaussians.invariant``) also takes them back as
+        ``invariant=`` [N, D] (``forward``'s); only such a model is ever given them."""
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by optimiser group (``GROUP_GRID``, ``GROUP_MLP``); empty groups are left out."""

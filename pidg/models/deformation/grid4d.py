@@ -182,7 +182,7 @@ class Grid4D(DeformationModel):
 
     # -- deformation ---------------------------------------------------------------------------------------------
 
-    def deform(
+    def deform(  # type: ignore[override]  # also takes its invariant features back (DeformationModel.deform)
         self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False,
         invariant: Tensor | None = None,
     ) -> DeformedGaussians:

@@ -20,8 +20,5 @@ class IdentityDeformation(DeformationModel):
         super().__init__()
         self.config = config or IdentityDeformationConfig()
 
-    def deform(
-        self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False,
-        invariant: Tensor | None = None,
-    ) -> DeformedGaussians:
+    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
         return DeformedGaussians(means, quats, log_scales)

@@ -85,12 +85,8 @@ class MLPDeformation(DeformationModel):
         t = positional_encoding(times[:, None], self.config.time_frequencies)
         return torch.cat([x, t], dim=-1)
 
-    def deform(
-        self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False,
-        invariant: Tensor | None = None,
-    ) -> DeformedGaussians:
-        """Deform every row (the baseline has no regulariser and no time-independent features: ``regularize`` and
-        ``invariant`` change nothing)."""
+    def deform(self, means: Tensor, quats: Tensor, log_scales: Tensor, times: Tensor, regularize: bool = False) -> DeformedGaussians:
+        """Deform every row (the baseline has no regulariser: ``regularize`` changes nothing)."""
         dtype = self.head_scale.weight.dtype
         positions = means.detach() if self.config.detach_positions else means
         inputs = self.encode(positions.to(dtype), times.to(dtype))
