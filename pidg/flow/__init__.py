@@ -27,6 +27,7 @@ from pidg.flow.lpfm import (
     end_point_error,
     flow_target_for_pair,
     lpfm_loss,
+    sample_tiles,
 )
 from pidg.flow.optical_flow import (
     FlowEstimatorUnavailable,
@@ -79,5 +80,6 @@ __all__ = [
     "render_pair_flows",
     "rendered_depth",
     "run_preprocess",
+    "sample_tiles",
     "warp_to_first_frame",
 ]

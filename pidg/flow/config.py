@@ -84,6 +84,11 @@ class FlowConfig:
     target_refresh_steps: Annotated[int, AT_LEAST_ONE] = 300
     """Most steps the rendered depth behind a pair's flow target may be old: the target is rebuilt from frame t+1's
     latest training render when that is younger, else from a render of its own."""
+    tile_fraction: Annotated[float, Range(0, 1, lo_open=True)] = 1.0
+    """Share of the 16x16 pixel tiles holding supervised pixels that the loss reads at a step, drawn at random each
+    step (1: every tile). The loss is the mean over the drawn tiles' pixels, a sample of the full one, and only the
+    Gaussians that reach them get the t+1 deformation, velocities and flow channels: the flow term's cost falls with
+    the share (as L_CMR samples particles rather than taking all)."""
 
     def __post_init__(self) -> None:
         validate_config(self)

@@ -131,6 +131,32 @@ def lpfm_loss(
     )
 
 
+def sample_tiles(valid: Tensor, fraction: float, generator: torch.Generator, tile_size: int = 16) -> Tensor:
+    """``valid`` [H, W] kept in ``fraction`` of the ``tile_size`` tiles that hold a valid pixel (at least one tile);
+    the rest set False. ``fraction`` 1 returns ``valid`` itself. The kept tiles are a run of consecutive occupied
+    tiles in row-major order (a band of the image, wrapping around) from a start drawn with ``generator`` (CPU), so
+    every tile is kept with the same probability; a band rather than scattered tiles, because a Gaussian covers
+    several tiles: scattered ones would still reach most Gaussians, a band reaches about ``fraction`` of them."""
+    if not 0 < fraction <= 1:
+        raise ValueError(f"sample_tiles: fraction must be in (0, 1], got {fraction}")
+    if fraction == 1:
+        return valid
+    h, w = valid.shape
+    tiles_y, tiles_x = -(-h // tile_size), -(-w // tile_size)
+    padded = torch.nn.functional.pad(valid, (0, tiles_x * tile_size - w, 0, tiles_y * tile_size - h))
+    occupied = padded.reshape(tiles_y, tile_size, tiles_x, tile_size).any(dim=3).any(dim=1).reshape(-1).cpu()
+    candidates = occupied.nonzero().squeeze(1)
+    if candidates.numel() == 0:
+        return valid
+    count = max(1, round(fraction * candidates.numel()))
+    start = int(torch.randint(candidates.numel(), (1,), generator=generator))
+    picked = candidates[(start + torch.arange(count)) % candidates.numel()]
+    keep = torch.zeros(tiles_y * tiles_x, dtype=torch.bool)
+    keep[picked] = True
+    tiles = keep.reshape(tiles_y, 1, tiles_x, 1).expand(tiles_y, tile_size, tiles_x, tile_size)
+    return valid & tiles.reshape(tiles_y * tile_size, tiles_x * tile_size)[:h, :w].to(valid.device)
+
+
 def depth_from_render(render: RenderOutput, min_alpha: float = OPAQUE_ALPHA) -> Tensor:
     """Expected depth [H, W] of a render (frame t+1, camera t+1), 0 (= unknown) where alpha < ``min_alpha``:
     half-transparent pixels mix foreground and background depths, and empty ones have none."""

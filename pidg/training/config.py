@@ -195,6 +195,11 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 #: half-extent, e^2): the field no longer throws Gaussians tens of half-extents away early in a run (what collapsed
 #: jumpingjacks at 64 cells once a NaN stopped rolling it back); val PSNR against 32 cells unbounded: bouncingballs
 #: 40.17 vs 39.63 (12000 steps), jumpingjacks 34.61 vs 34.04 and lego 26.69 vs 26.67 (8000 steps).
+#: The cpu preset's share of the flow loss's tiles read per step (``FlowConfig.tile_fraction``; the paper preset reads
+#: all): half a band of tiles takes the full method's step from x1.61 to x1.48 of the base step (bouncingballs, 18k
+#: trained Gaussians, 400x400), and on the three scenes with true motion (the demo, make-scene kinematic and rigid)
+#: PSNR and flow errors moved by less than one run's own noise (README, "Measured on this project's 2-core CPU").
+CPU_FLOW_TILE_FRACTION = 0.5
 CPU_DNERF_SCHEDULE = {"iterations": 12_000, "densify_start": 300, "densify_stop": 5000, "opacity_reset_every": 2000,
                       "random_init_points": 20_000, "max_gaussians": 30_000, "temporal_finest": (32, 32, 64),
                       "max_translation": 1.0, "max_log_scale_change": 2.0}
@@ -207,7 +212,8 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
     2^15 entries (Adam touches every entry every step), spatial resolution up to 1024, 64-wide layers, and 16
     instead of 32 levels on the temporal grids; a 64-wide material field (the 256-wide one's matrix products were
     most of what the full method adds to a step; on the demo scene, full method, 1200 steps: 24.03 against 23.76 dB,
-    velocity-flow error 1.00 against 1.03 px, x1.30 the step rate); on D-NeRF scenes also a schedule for a CPU's budget
+    velocity-flow error 1.00 against 1.03 px, x1.30 the step rate); the flow loss on half of its tiles per step
+    (``CPU_FLOW_TILE_FRACTION``); on D-NeRF scenes also a schedule for a CPU's budget
     (``CPU_DNERF_SCHEDULE``: 12000 steps, densification 300-5000 up to 30k Gaussians, opacity reset every 2000, 20k
     random points, temporal grids up to 64 cells along t, the warp's translation and log-scale change soft-bounded).
     Their resolutions only grow from 8 to 32 (16 along t), so 32 levels sit 4.6% apart; 16 levels (9% apart) cover
@@ -230,7 +236,8 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
             temporal_grid=HashGridConfig(16, 2, 15, (8, 8, 8), (32, 32, 16)),
             width=64,
         )
-        config = replace(config, deformation=replace(config.deformation, grid4d=grid4d), material=replace(config.material, width=64))
+        config = replace(config, deformation=replace(config.deformation, grid4d=grid4d), material=replace(config.material, width=64),
+                         flow=replace(config.flow, tile_fraction=CPU_FLOW_TILE_FRACTION))
         if layout == "dnerf":
             temporal = replace(grid4d.temporal_grid, finest_resolution=CPU_DNERF_SCHEDULE["temporal_finest"])
             bounded = replace(grid4d, temporal_grid=temporal, max_translation=CPU_DNERF_SCHEDULE["max_translation"],
@@ -264,4 +271,5 @@ def describe_schedule(config: TrainConfig) -> str:
         f"(opacity reset every {d.opacity_reset_every}, prune scale {d.prune_world_scale}), network learning rates x0.1 per {decay} steps; {config.deformation.kind} "
         f"deformation, Grid4D tables 2^{g.spatial_grid.log2_table_size}/2^{g.temporal_grid.log2_table_size}, "
         f"{g.temporal_grid.n_levels} temporal levels up to {g.temporal_grid.finest_resolution}, width {g.width}, decoder depth {g.decoder_depth}"
+        + (f"; flow loss on {config.flow.tile_fraction:g} of its tiles a step" if config.flow.enabled else "")
     )

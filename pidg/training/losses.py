@@ -16,6 +16,7 @@ Terms, in the order they are summed (NOTES.md section 9):
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,6 +36,7 @@ from pidg.flow import (
     flow_target_for_pair,
     lpfm_loss,
     model_flow_target,
+    sample_tiles,
     supervised_flow_channels,
 )
 from pidg.metrics import ssim
@@ -282,9 +284,10 @@ class FlowMatchingLoss(LossTerm):
     name = "lpfm"
     phase = "flow"
 
-    def __init__(self, config: FlowConfig, cache: FlowCache) -> None:
+    def __init__(self, config: FlowConfig, cache: FlowCache, seed: int = 0) -> None:
         self.config = config
         self.cache = cache
+        self.generator = torch.Generator().manual_seed(seed)  # the tiles drawn per step (FlowConfig.tile_fraction)
         self._targets: dict[str, _CachedTarget] = {}  # pair's first frame name -> flow_gt and what it came from
         self._pending: tuple[FlowPair, FlowTarget] | None = None  # this step's pair and target
         self._depths: dict[str, tuple[int, Tensor]] = {}  # frame name -> (step, its depth in that step's render)
@@ -298,6 +301,8 @@ class FlowMatchingLoss(LossTerm):
         if pair is None:
             return
         target = self.target(inputs.model, pair, inputs.step, inputs.deforming)
+        if self.config.tile_fraction < 1:  # this step reads a random share of the tiles (the cached target stays whole)
+            target = dataclasses.replace(target, valid=sample_tiles(target.valid, self.config.tile_fraction, self.generator))
         if bool(target.valid.any()):
             self._pending = (pair, target)
 
@@ -363,11 +368,14 @@ class FlowMatchingLoss(LossTerm):
     def state_dict(self) -> dict[str, Any]:
         # the rendered depths behind cached flow targets (the targets are rebuilt from them on resume) and the kept
         # depths of recent renders; a target built from a kept depth holds the same tensor, saved once
-        return {"depths": {k: (c.step, c.depth) for k, c in self._targets.items()}, "frame_depths": dict(self._depths)}
+        return {"depths": {k: (c.step, c.depth) for k, c in self._targets.items()}, "frame_depths": dict(self._depths),
+                "generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self._targets = {k: _CachedTarget(step, depth, None) for k, (step, depth) in state["depths"].items()}
         self._depths = {k: (step, depth) for k, (step, depth) in state.get("frame_depths", {}).items()}
+        if "generator" in state:  # checkpoints before tile sampling have none (and drew no tiles)
+            self.generator.set_state(state["generator"])
 
 
 def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[LossTerm]:
@@ -382,5 +390,5 @@ def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[
     if config.flow.enabled:
         if flow_cache is None:
             raise ValueError("the flow loss needs the scene's optical flow (a FlowCache)")
-        terms.append(FlowMatchingLoss(config.flow, flow_cache))
+        terms.append(FlowMatchingLoss(config.flow, flow_cache, config.optim.seed + 3))
     return terms

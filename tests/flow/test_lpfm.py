@@ -119,3 +119,36 @@ def test_depth_change_error_is_added_in_pixel_equivalents_over_known_pixels():
 def test_depth_change_needs_the_motion_target():
     with pytest.raises(ValueError, match="lambda_depth_change 1.0 needs --flow.target motion"):
         FlowConfig(lambda_depth_change=1.0, target="total")
+
+
+def test_sample_tiles_keeps_a_band_of_the_occupied_tiles_each_equally_often():
+    """A fraction of the 16x16 tiles that hold valid pixels: that many tiles, consecutive in row-major order
+    (wrapping), pixels inside them untouched and outside cleared; over many draws every occupied tile is kept about
+    ``fraction`` of the time (the sampled loss is an unbiased sample of the full one per pixel)."""
+    from pidg.flow import sample_tiles
+
+    gen = torch.Generator().manual_seed(0)
+    valid = torch.rand(70, 100, generator=gen) > 0.3  # 5 x 7 tiles, partial ones at the right and bottom
+    valid[:16, :] = False  # the first tile row holds nothing
+    occupied = [(ty, tx) for ty in range(5) for tx in range(7) if valid[16 * ty:16 * ty + 16, 16 * tx:16 * tx + 16].any()]
+    assert len(occupied) == 28
+    counts = torch.zeros(5, 7)
+    draws = 2000
+    for _ in range(draws):
+        kept = sample_tiles(valid, 0.25, gen)
+        assert not (kept & ~valid).any()
+        tiles = [(ty, tx) for ty, tx in occupied if kept[16 * ty:16 * ty + 16, 16 * tx:16 * tx + 16].any()]
+        assert len(tiles) == 7  # round(0.25 * 28)
+        first = next(i for i in range(28) if occupied[i] in tiles and occupied[i - 1] not in tiles)  # the band's start
+        wrapped = [occupied[(first + k) % 28] for k in range(7)]
+        assert sorted(tiles) == sorted(wrapped)  # one band of consecutive occupied tiles
+        for ty, tx in tiles:  # whole tiles: every valid pixel of a kept tile is kept
+            block = (slice(16 * ty, 16 * ty + 16), slice(16 * tx, 16 * tx + 16))
+            assert torch.equal(kept[block], valid[block])
+            counts[ty, tx] += 1
+    share = torch.stack([counts[ty, tx] for ty, tx in occupied]) / draws
+    assert (share - 0.25).abs().max() < 0.05
+    assert sample_tiles(valid, 1.0, gen) is valid
+    assert not sample_tiles(torch.zeros(20, 20, dtype=torch.bool), 0.5, gen).any()
+    with pytest.raises(ValueError, match=r"fraction must be in \(0, 1\]"):
+        sample_tiles(valid, 0.0, gen)

@@ -99,6 +99,8 @@ def test_presets_follow_the_device_and_the_dataset(tmp_path):
     cpu = apply_preset(TrainConfig(device="cpu"), "auto")
     assert cpu.preset == "cpu" and cpu.deformation.grid4d.width == 64 and cpu.optim.iterations == TrainConfig().optim.iterations
     assert cpu.material.width == 64 and paper["dnerf"].material == TrainConfig().material  # the paper's 256 on a GPU
+    # the flow loss reads half its tiles a step on a CPU, all of them with the paper's settings
+    assert cpu.flow.tile_fraction == 0.5 and all(c.flow.tile_fraction == 1.0 for c in paper.values())
     # on D-NeRF scenes the cpu preset also sets a schedule for a CPU's budget; other kinds keep the defaults
     cpu_dnerf = apply_preset(TrainConfig(device="cpu"), "cpu", "dnerf")
     assert (cpu_dnerf.optim.iterations, cpu_dnerf.densify.start, cpu_dnerf.densify.stop, cpu_dnerf.densify.opacity_reset_every,

@@ -103,13 +103,14 @@ def test_full_pidg_step_adds_cmr_and_lpfm_and_trains_the_material_field(scene, t
     assert errors["flow_supervised_pixels"] > 0 and errors["velocity_flow_epe"] >= 0.0
 
 
-@pytest.mark.parametrize("refresh", [300, 6])
-def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh):
+@pytest.mark.parametrize("refresh, tiles", [(300, 1.0), (6, 1.0), (300, 0.5)])
+def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh, tiles):
     # 8 training frames: the second epoch reuses flow targets built in the first, across the interruption; with a
-    # 6-step refresh it rebuilds them from depths kept from training renders, some of them before the interruption
+    # 6-step refresh it rebuilds them from depths kept from training renders, some of them before the interruption;
+    # with half the tiles per step the resumed run draws the same tiles (the term's generator is checkpointed)
     def config(out_dir):
         cfg = physics_flow_config(out_dir, iterations=14)
-        cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=refresh)
+        cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=refresh, tile_fraction=tiles)
         return cfg
 
     full = Trainer(config(tmp_path / "full"), scene)
