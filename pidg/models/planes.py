@@ -73,6 +73,14 @@ def _cell(p, r):  # pragma: no cover - compiled
     return np.int64(i), p - i
 
 
+@njit(cache=True, inline="always")
+def _corners(pa, pb, i, k, ra, rb):  # pragma: no cover - compiled
+    """Particle i's cell on plane k and its bilinear weights: (ia, ib, fa, fb, 1 - fa, 1 - fb)."""
+    ia, fa = _cell(pa[i, k], ra)
+    ib, fb = _cell(pb[i, k], rb)
+    return ia, ib, fa, fb, f32(1.0) - fa, f32(1.0) - fb
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _lookup_forward(planes, pa, pb, value, d_pa, d_pb, derivatives):  # pragma: no cover - compiled
     """planes [K, Ra, Rb, C], pa / pb [M, K] -> value (and with ``derivatives`` d_pa, d_pb) [M, K, C]."""
@@ -81,9 +89,7 @@ def _lookup_forward(planes, pa, pb, value, d_pa, d_pb, derivatives):  # pragma: 
     for chunk in prange((m + _CHUNK - 1) // _CHUNK):
         for i in range(chunk * _CHUNK, min(m, (chunk + 1) * _CHUNK)):
             for k in range(n_planes):
-                ia, fa = _cell(pa[i, k], ra)
-                ib, fb = _cell(pb[i, k], rb)
-                ga, gb = f32(1.0) - fa, f32(1.0) - fb
+                ia, ib, fa, fb, ga, gb = _corners(pa, pb, i, k, ra, rb)
                 for c in range(n_ch):
                     v00, v01 = planes[k, ia, ib, c], planes[k, ia, ib + 1, c]
                     v10, v11 = planes[k, ia + 1, ib, c], planes[k, ia + 1, ib + 1, c]
@@ -110,9 +116,7 @@ def _lookup_backward(planes, pa, pb, g_value, g_da, g_db, partial, grad_pa, grad
         grad = partial[task]
         for i in range(task * per_task, min(m, (task + 1) * per_task)):
             for k in range(n_planes):
-                ia, fa = _cell(pa[i, k], ra)
-                ib, fb = _cell(pb[i, k], rb)
-                ga, gb = f32(1.0) - fa, f32(1.0) - fb
+                ia, ib, fa, fb, ga, gb = _corners(pa, pb, i, k, ra, rb)
                 for c in range(n_ch):
                     gv, a, b = g_value[i, k, c], g_da[i, k, c], g_db[i, k, c]
                     grad[k, ia, ib, c] += gv * ga * gb - a * gb - b * ga
