@@ -19,7 +19,7 @@ from torch import Tensor
 from pidg.flow.config import FlowConfig
 from pidg.flow.decomposition import FlowTarget, depth_change_target, dilate_mask, motion_flow_target
 from pidg.flow.preprocess import FlowPair
-from pidg.render.api import RenderOutput
+from pidg.render.api import TILE_SIZE, RenderOutput, tiles_touched
 from pidg.render.output import OPAQUE_ALPHA
 
 
@@ -131,8 +131,8 @@ def lpfm_loss(
     )
 
 
-def sample_tiles(valid: Tensor, fraction: float, generator: torch.Generator, tile_size: int = 16) -> Tensor:
-    """``valid`` [H, W] kept in ``fraction`` of the ``tile_size`` tiles that hold a valid pixel (at least one tile);
+def sample_tiles(valid: Tensor, fraction: float, generator: torch.Generator, tile_size: int = TILE_SIZE) -> Tensor:
+    """``valid`` [H, W] kept in ``fraction`` of the rasterizer's tiles that hold a valid pixel (at least one tile);
     the rest set False. ``fraction`` 1 returns ``valid`` itself. The kept tiles are a run of consecutive occupied
     tiles in row-major order (a band of the image, wrapping around) from a start drawn with ``generator`` (CPU), so
     every tile is kept with the same probability; a band rather than scattered tiles, because a Gaussian covers
@@ -142,10 +142,9 @@ def sample_tiles(valid: Tensor, fraction: float, generator: torch.Generator, til
     if fraction == 1:
         return valid
     h, w = valid.shape
-    tiles_y, tiles_x = -(-h // tile_size), -(-w // tile_size)
-    padded = torch.nn.functional.pad(valid, (0, tiles_x * tile_size - w, 0, tiles_y * tile_size - h))
-    occupied = padded.reshape(tiles_y, tile_size, tiles_x, tile_size).any(dim=3).any(dim=1).reshape(-1).cpu()
-    candidates = occupied.nonzero().squeeze(1)
+    occupied = tiles_touched(valid, tile_size)
+    tiles_y, tiles_x = occupied.shape
+    candidates = occupied.reshape(-1).cpu().nonzero().squeeze(1)
     if candidates.numel() == 0:
         return valid
     count = max(1, round(fraction * candidates.numel()))

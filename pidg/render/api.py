@@ -90,13 +90,18 @@ def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cp
     return backend  # type: ignore[return-value]
 
 
+def tiles_touched(pixels: Tensor, tile_size: int = TILE_SIZE) -> Tensor:
+    """[tiles_y, tiles_x] bool: the rasterizer's tiles that hold a True pixel of ``pixels`` [H, W] (bool)."""
+    height, width = pixels.shape
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    padded = F.pad(pixels.to(torch.float32), (0, tiles_x * tile_size - width, 0, tiles_y * tile_size - height))
+    return padded.reshape(tiles_y, tile_size, tiles_x, tile_size).amax(dim=(1, 3)) > 0
+
+
 def feature_tile_channels(feature_pixels: Tensor, always: int, n_features: int, tile_size: int = TILE_SIZE) -> Tensor:
     """[tiles_y * tiles_x] (row-major) channels each tile composites: ``always + n_features`` in the tiles that hold
     a pixel of ``feature_pixels`` [H, W] (bool), ``always`` in the others."""
-    height, width = feature_pixels.shape
-    tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    padded = F.pad(feature_pixels.to(torch.float32), (0, tiles_x * tile_size - width, 0, tiles_y * tile_size - height))
-    touched = padded.reshape(tiles_y, tile_size, tiles_x, tile_size).amax(dim=(1, 3)) > 0
+    touched = tiles_touched(feature_pixels, tile_size)
     return torch.where(touched, always + n_features, always).reshape(-1)
 
 

@@ -301,8 +301,8 @@ class FlowMatchingLoss(LossTerm):
         if pair is None:
             return
         target = self.target(inputs.model, pair, inputs.step, inputs.deforming)
-        if self.config.tile_fraction < 1:  # this step reads a random share of the tiles (the cached target stays whole)
-            target = dataclasses.replace(target, valid=sample_tiles(target.valid, self.config.tile_fraction, self.generator))
+        # this step reads a random share of the tiles (the cached target stays whole; a share of 1 keeps them all)
+        target = dataclasses.replace(target, valid=sample_tiles(target.valid, self.config.tile_fraction, self.generator))
         if bool(target.valid.any()):
             self._pending = (pair, target)
 
