@@ -21,6 +21,7 @@ import torch
 
 from pidg.bench.suite import SSIM_NAMES, Grid, efficiency_grid, quality_grid, row_label
 from pidg.checkpoint import CHECKPOINT_FILE, CONFIG_FILE
+from pidg.evaluation.charts import svg_chart
 from pidg.evaluation.images import save_png
 from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images
 from pidg.flow import open_flow_cache
@@ -31,7 +32,6 @@ logger = logging.getLogger(__name__)
 
 CURVE_TAG = "train/psnr"
 SMOOTHING = 0.9  # exponential moving average of the per-step training PSNR (as TensorBoard's smoothing slider)
-PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf")
 
 
 @dataclass
@@ -96,46 +96,6 @@ def psnr_curve(run_dir: Path) -> list[tuple[float, float]]:
         smooth = e.value if smooth is None else SMOOTHING * smooth + (1 - SMOOTHING) * e.value
         points.append(((e.wall_time - start) / 60.0, smooth))
     return points
-
-
-def svg_chart(series: dict[str, list[tuple[float, float]]], x_label: str, y_label: str, width: int = 760, height: int = 300) -> str:
-    """A line chart as inline SVG (no plotting library): axes with 5 ticks each, one coloured line per series."""
-    points = [p for s in series.values() for p in s]
-    if not points:
-        return "<p>(no curve: the runs have no TensorBoard scalars)</p>"
-    x0, x1 = min(p[0] for p in points), max(p[0] for p in points)
-    y0, y1 = min(p[1] for p in points), max(p[1] for p in points)
-    x1, y1 = (x1 if x1 > x0 else x0 + 1), (y1 if y1 > y0 else y0 + 1)
-    left, right, top, bottom = 56, 290, 12, 40
-    pw, ph = width - left - right, height - top - bottom
-
-    def sx(x: float) -> float:
-        return left + (x - x0) / (x1 - x0) * pw
-
-    def sy(y: float) -> float:
-        return top + (1 - (y - y0) / (y1 - y0)) * ph
-
-    parts = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" font-family="sans-serif" font-size="11">',
-             f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="white" stroke="#888"/>']
-    for i in range(5):
-        xv, yv = x0 + (x1 - x0) * i / 4, y0 + (y1 - y0) * i / 4
-        parts.append(f'<line x1="{sx(xv):.1f}" y1="{top}" x2="{sx(xv):.1f}" y2="{top + ph}" stroke="#eee"/>')
-        parts.append(f'<line x1="{left}" y1="{sy(yv):.1f}" x2="{left + pw}" y2="{sy(yv):.1f}" stroke="#eee"/>')
-        parts.append(f'<text x="{sx(xv):.1f}" y="{top + ph + 14}" text-anchor="middle">{xv:.3g}</text>')
-        parts.append(f'<text x="{left - 4}" y="{sy(yv) + 4:.1f}" text-anchor="end">{yv:.3g}</text>')
-    parts.append(f'<text x="{left + pw / 2}" y="{height - 6}" text-anchor="middle">{html.escape(x_label)}</text>')
-    parts.append(f'<text x="12" y="{top + ph / 2}" transform="rotate(-90 12 {top + ph / 2})" text-anchor="middle">'
-                 f'{html.escape(y_label)}</text>')
-    for i, (name, pts) in enumerate(series.items()):
-        color = PALETTE[i % len(PALETTE)]
-        if pts:
-            coords = " ".join(f"{sx(x):.1f},{sy(y):.1f}" for x, y in pts)
-            parts.append(f'<polyline fill="none" stroke="{color}" stroke-width="1.6" points="{coords}"/>')
-        ly = top + 14 + 16 * i
-        parts.append(f'<line x1="{left + pw + 8}" y1="{ly - 4}" x2="{left + pw + 24}" y2="{ly - 4}" stroke="{color}" stroke-width="3"/>')
-        parts.append(f'<text x="{left + pw + 28}" y="{ly}">{html.escape(name[:44])}</text>')
-    parts.append("</svg>")
-    return "".join(parts)
 
 
 # ---- pictures -----------------------------------------------------------------------------------------------------

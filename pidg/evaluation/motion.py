@@ -49,6 +49,7 @@ from torch import Tensor
 
 from pidg.data.motion_gt import MotionGroundTruth, composited_flow, projected_displacement, resize_flow
 from pidg.data.scene import DatasetError, Frame
+from pidg.evaluation.charts import svg_chart
 from pidg.flow import FlowCache, FlowConfig, FlowTarget, model_flow_target
 from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -176,6 +177,17 @@ class MotionEvaluation:
             + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
                f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
         )
+
+
+    def per_frame_chart(self) -> str:
+        """The flow errors of every scored frame against its dataset time, as an SVG line chart (EPE in px): where
+        in the recording the learned motion goes wrong (a collision, a fast phase), beside zero motion's error."""
+        names = {"motion_flow_epe": "motion flow (deformation)", "velocity_flow_epe": "velocity flow (field v)",
+                 "zero_motion_epe": "zero motion"}
+        rows = sorted((r for r in self.per_frame if r.get("zero_motion_epe") is not None), key=lambda r: r["time"])
+        series = {label: [(r["time"], r[key]) for r in rows if r.get(key) is not None] for key, label in names.items()}
+        return svg_chart({k: v for k, v in series.items() if v}, f"dataset time ({self.split} views)", "end-point error (px)",
+                         y_floor=0.0)
 
 
 UNITS = {

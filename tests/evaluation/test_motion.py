@@ -7,7 +7,9 @@ import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 import dataclasses
 import json
 import math
+import re
 import shutil
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -352,6 +354,24 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     assert data["target"]["pairs"] == 5 and data["target"]["depth"] == "model" and data["target"]["skipped"] == []
     assert "flow target (train pairs, model depth)" in lines[0]
     assert (run / "eval_test" / "metrics.json").is_file()
+    # the per-frame errors drawn over time: one line per flow (and zero motion), a point per test view in time order,
+    # the largest per-frame error at the plot's top edge, the axis from 0 px
+    svg = (run / "eval_test" / "motion_gt_per_frame.svg").read_text()
+    ElementTree.fromstring(svg)
+    lines_xy = [[tuple(map(float, p.split(","))) for p in pts.split()] for pts in re.findall(r'points="([^"]+)"', svg)]
+    assert len(lines_xy) == 3 and all(len(line) == 2 and line[0][0] < line[1][0] for line in lines_xy)
+    values = [r[k] for r in data["per_frame"] for k in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe")]
+    ys = [y for line in lines_xy for _, y in line]
+    assert ys[_flat_index(data, max(values))] == pytest.approx(12.0, abs=0.051)  # coordinates are written to 0.1
+    lowest = 12 + (1 - min(values) / max(values)) * (300 - 40 - 12)  # plot top 12 px, bottom 300 - 40 px = 0 px EPE
+    assert ys[_flat_index(data, min(values))] == pytest.approx(lowest, abs=0.051)
+
+
+def _flat_index(data: dict, value: float) -> int:
+    """Where ``value`` sits in the chart's points (lines in the order motion, velocity, zero; points in time order)."""
+    frames = sorted(data["per_frame"], key=lambda r: r["time"])
+    flat = [r[k] for k in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe") for r in frames]
+    return flat.index(value)
 
 
 @pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
