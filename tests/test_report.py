@@ -11,7 +11,7 @@ from PIL import Image
 
 from pidg.bench.suite import run_suite
 from pidg.data.procedural import write_procedural_dataset
-from pidg.report import build_report, svg_chart
+from pidg.report import build_report
 
 from bench.test_suite import TINY, tiny_train_config  # the suite tests' tiny scene and schedule
 
@@ -42,10 +42,3 @@ def test_bad_inputs_are_named(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="empty: not a run folder"):
         build_report([tmp_path / "empty"], tmp_path / "r.html")
-
-
-def test_the_chart_maps_its_extremes_to_the_plot_corners():
-    svg = svg_chart({"a": [(0.0, 10.0), (2.0, 30.0)]}, "minutes", "PSNR", width=500, height=200)
-    (points,) = re.findall(r'points="([^"]+)"', svg)
-    (x0, y0), (x1, y1) = [tuple(map(float, p.split(","))) for p in points.split()]
-    assert (x0, y1) == (56.0, 12.0) and (x1, y0) == (500 - 290, 200 - 40)  # left/bottom and right/top of the plot

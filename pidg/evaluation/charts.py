@@ -9,13 +9,15 @@ PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e
 
 def svg_chart(
     series: dict[str, list[tuple[float, float]]], x_label: str, y_label: str, width: int = 760, height: int = 300,
-    y_floor: float | None = None,
+    y_floor: float | None = None, empty_note: str = "nothing to draw",
 ) -> str:
     """A line chart as inline SVG (no plotting library): axes with 5 ticks each, one coloured line per series.
-    ``y_floor``: the y axis starts there (or lower, where the data go lower), e.g. 0 for errors."""
+    ``y_floor``: the y axis starts there (or lower, where the data go lower), e.g. 0 for errors. Without points, an
+    SVG that says ``empty_note``."""
     points = [p for s in series.values() for p in s]
     if not points:
-        return "<p>(no curve: nothing to draw)</p>"
+        return (f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="40" font-family="sans-serif" '
+                f'font-size="11"><text x="8" y="24">(no curve: {html.escape(empty_note)})</text></svg>')
     x0, x1 = min(p[0] for p in points), max(p[0] for p in points)
     y0, y1 = min(p[1] for p in points), max(p[1] for p in points)
     y0 = y0 if y_floor is None else min(y0, y_floor)
