@@ -181,9 +181,9 @@ class MotionEvaluation:
     def per_frame_chart(self) -> str:
         """The flow errors of every scored frame against its dataset time, as an SVG line chart (EPE in px): where
         in the recording the learned motion goes wrong (a collision, a fast phase), beside zero motion's error."""
-        names = {"motion_flow_epe": "motion flow (deformation)", "velocity_flow_epe": "velocity flow (field v)",
-                 "zero_motion_epe": "zero motion"}
-        rows = sorted((r for r in self.per_frame if r.get("zero_motion_epe") is not None), key=lambda r: r["time"])
+        names = {FLOW_KEYS["motion"]: "motion flow (deformation)", FLOW_KEYS["velocity"]: "velocity flow (field v)",
+                 FLOW_KEYS["zero"]: "zero motion"}
+        rows = sorted((r for r in self.per_frame if r.get(FLOW_KEYS["zero"]) is not None), key=lambda r: r["time"])
         series = {label: [(r["time"], r[key]) for r in rows if r.get(key) is not None] for key, label in names.items()}
         return svg_chart({k: v for k, v in series.items() if v}, f"dataset time ({self.split} views)", "end-point error (px)",
                          y_floor=0.0, empty_note="no view was scored")
