@@ -53,9 +53,9 @@ def run_quality_bench(
 
 #: Columns against ground-truth motion, shown when a scene carries it (pidg.evaluation.motion): motion-flow,
 #: velocity-flow and zero-motion EPE (px), relative 3D velocity error of the deformation and of v, vertex coverage,
-#: and the EPE (px) of the flow target LPFM trains against (training pairs).
+#: the EPE (px) of the flow target LPFM trains against (training pairs), and the 3D tracking relative error.
 MOTION_COLUMNS = tuple((key, short, fmt) for (key, _, fmt), short in
-                       zip(MOTION, ("gtEPE-m", "gtEPE-v", "gtEPE-0", "relV-def", "relV-v", "cover", "gtEPE-tgt"), strict=True))
+                       zip(MOTION, ("gtEPE-m", "gtEPE-v", "gtEPE-0", "relV-def", "relV-v", "cover", "gtEPE-tgt", "track"), strict=True))
 
 
 #: what the seed spread summarises: the image metrics, the run's cost and the motion columns

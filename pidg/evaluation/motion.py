@@ -30,6 +30,15 @@ x + v_gt(t) (t' - t) projected, against the true displacement x(t') (mean pixels
 frame's camera at the times that have a sample at t' too); a curved path makes it non-zero, and no learned v can
 go below it by that definition.
 
+**3D tracking (identity over the recording).** At each scored frame's time that has a vertex sample (the anchor),
+every vertex is matched to its nearest Gaussian as above; those Gaussians are then followed through every other
+ground-truth sample time in [0, 1], and their displacement since the anchor is compared with their vertex's:
+error = mean |(g(t) - g(t_a)) - (x(t) - x(t_a))|, travel = mean |x(t) - x(t_a)| (world units; travel is a
+standing-still model's error), relative = the pooled error / travel (0: the Gaussians carry the surface along; 1: no
+better than standing still). Per-frame flow and velocity see a few frame intervals at most; a model that rebuilds a
+moving object from other Gaussians as it goes (the positions right, the particles' identity lost) scores well there
+and only fails here.
+
 **The flow target (training pairs).** What LPFM pulls the model's flows towards, the motion-flow target of each
 training pair (:func:`pidg.flow.model_flow_target`: the optical flow minus the camera flow of frame t+1's depth, the
 dataset's or the model's own render, inside the motion mask), scored against the true flow of frame t on the pixels
@@ -119,6 +128,19 @@ class VelocityScores:
 
 
 @dataclass
+class TrackingScores:
+    """Long-range 3D motion (world units): the Gaussians matched to the vertices at the anchor times, followed
+    through every ground-truth sample time (see the module docstring)."""
+
+    anchors: int
+    samples: int  # (anchor, other time, matched vertex) triples
+    coverage: float | None  # matched vertices / vertices, at the anchors
+    error: float | None  # mean |(g(t) - g(t_a)) - (x(t) - x(t_a))|
+    travel: float | None  # mean |x(t) - x(t_a)|: the error of Gaussians that stand still
+    relative: float | None  # pooled error / travel
+
+
+@dataclass
 class TargetScores:
     """The training pairs' motion-flow target against the true flow of their first frame (pixels), pooled over the
     scored pairs. Scored pixels: supervised by the target, and a dynamic surface in the truth."""
@@ -146,6 +168,7 @@ class MotionEvaluation:
     per_frame: list[dict[str, Any]]
     units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
     target: TargetScores | None = None  # the training pairs' flow target (:func:`evaluate_flow_target`)
+    tracking: TrackingScores | None = None  # None: fewer than two vertex sample times
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -159,6 +182,7 @@ class MotionEvaluation:
             "gt_velocity_rel_deformation": self.velocity.deformation_rel,
             "gt_velocity_rel_field": self.velocity.field_rel,
             "gt_coverage": self.velocity.coverage,
+            "gt_track_rel": None if self.tracking is None else self.tracking.relative,
             "gt_target_flow_epe": None if self.target is None else self.target.target_epe,
         }
 
@@ -174,6 +198,9 @@ class MotionEvaluation:
             f"{_num(v.deformation_along_ray)} / {_num(v.deformation_across_ray)}, field v {_num(v.field_along_ray)} / "
             f"{_num(v.field_across_ray)}, zero {_num(v.zero_along_ray)} / {_num(v.zero_across_ray)}; the true "
             f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} from the true displacement"
+            + ("" if self.tracking is None else f"; 3D tracking from the {self.tracking.anchors} view times through the "
+               f"recording: error {_num(self.tracking.error)} vs travel {_num(self.tracking.travel)} world units "
+               f"(relative {_num(self.tracking.relative)})")
             + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
                f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
         )
@@ -396,7 +423,59 @@ def evaluate_motion(
 
     flow_scores = FlowScores(scored, pixels, average("motion"), average("velocity"), average("gaussian"), average("zero"), skipped)
     velocity = _velocity_scores(gathered, len(times_done), radius, h, speed_floor, truth.frame_interval)
-    return MotionEvaluation(split, str(truth.root.parent), truth.frame_interval, flow_scores, velocity, per_frame)
+    tracking, per_anchor = _tracking_scores(model, truth, sorted(times_done), radius)
+    for record in per_frame:
+        record.update(per_anchor.get(record["time"], {}))
+    return MotionEvaluation(split, str(truth.root.parent), truth.frame_interval, flow_scores, velocity, per_frame,
+                            tracking=tracking)
+
+
+def _tracking_scores(
+    model: DynamicGaussians, truth: MotionGroundTruth, anchors: Sequence[float], radius: float
+) -> tuple[TrackingScores | None, dict[float, dict[str, float | None]]]:
+    """The 3D tracking scores (module docstring) and, per anchor time, its ``track_error`` and ``track_travel``.
+    One deformation per anchor (matching) and one per ground-truth sample time (following)."""
+    vertices = truth.vertices
+    times = [float(t) for t in vertices.times if -_TIME_TOL <= t <= 1.0 + _TIME_TOL]
+    if len(times) < 2 or not anchors:
+        return None, {}
+    matches = []  # (anchor index in vertices, matched vertex indices, their Gaussians)
+    n_vertices = 0
+    for t in anchors:
+        k = vertices.index_of(t, _TIME_TOL)
+        points = torch.from_numpy(vertices.positions[k]).to(model.device)
+        idx, dist = nearest_gaussians(points, model.at(t).means)
+        hit = dist <= radius
+        matches.append((k, hit.nonzero().squeeze(1), idx[hit]))
+        n_vertices += len(points)
+    rows = torch.unique(torch.cat([g for _, _, g in matches]))
+    slot = torch.full((model.num_gaussians,), -1, dtype=torch.long, device=model.device)
+    slot[rows] = torch.arange(len(rows), device=model.device)
+    followed = torch.stack([model.at(t, rows=rows).means for t in times])  # [T, R, 3]
+    sample_of = [vertices.index_of(t, _TIME_TOL) for t in times]
+    truth_at = torch.from_numpy(vertices.positions[sample_of]).to(model.device)  # [T, V, 3]
+    error_sum = travel_sum = 0.0
+    samples = matched = 0
+    per_anchor: dict[float, dict[str, float | None]] = {}
+    for t_a, (k, verts, gauss) in zip(anchors, matches):
+        others = [i for i, s in enumerate(sample_of) if s != k]
+        if not len(verts) or not others:
+            per_anchor[t_a] = {"track_error": None, "track_travel": None}
+            continue
+        a = sample_of.index(k)  # an anchor is a scored frame's time in [0, 1] with a sample
+        g, x = followed[:, slot[gauss]], truth_at[:, verts]  # [T, M, 3]
+        moved, true_moved = g[others] - g[a], x[others] - x[a]
+        error = (moved - true_moved).norm(dim=-1).double()
+        travel = true_moved.norm(dim=-1).double()
+        error_sum, travel_sum = error_sum + float(error.sum()), travel_sum + float(travel.sum())
+        samples, matched = samples + error.numel(), matched + len(verts)
+        per_anchor[t_a] = {"track_error": float(error.mean()), "track_travel": float(travel.mean())}
+    scores = TrackingScores(
+        anchors=len(anchors), samples=samples, coverage=matched / n_vertices if n_vertices else None,
+        error=error_sum / samples if samples else None, travel=travel_sum / samples if samples else None,
+        relative=error_sum / travel_sum if travel_sum > 0 else None,
+    )
+    return scores, per_anchor
 
 
 def _has_sample(truth: MotionGroundTruth, t: float) -> bool:

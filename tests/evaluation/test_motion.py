@@ -160,9 +160,29 @@ def test_matching_truth_gives_zero_error_and_zero_motion_gives_the_flow_size(tmp
     assert [r["view"] for r in data["per_frame"]] == ["test/r_0000", "test/r_0001"]
     assert set(result.columns()) == {"gt_motion_flow_epe", "gt_velocity_flow_epe", "gt_zero_motion_epe",
                                      "gt_velocity_rel_deformation", "gt_velocity_rel_field", "gt_coverage",
-                                     "gt_target_flow_epe"}
+                                     "gt_target_flow_epe", "gt_track_rel"}
     assert result.target is None and result.columns()["gt_target_flow_epe"] is None
+    track = result.tracking  # each anchor against the other sample time, 0.25 of dataset time away
+    assert (track.anchors, track.samples, track.coverage) == (2, 2 * len(truth.vertices.positions[0]), 1.0)
+    assert track.error == pytest.approx(0.0, abs=1e-5) and track.relative == pytest.approx(0.0, abs=1e-5)
+    assert track.travel == pytest.approx(0.25 * float(VELOCITY.norm()), rel=1e-5)
+    assert data["per_frame"][0]["track_travel"] == pytest.approx(track.travel, rel=1e-5)
     assert "motion-flow EPE 0.000 px" in result.summary()
+
+
+@pytest.mark.parametrize("follows", [0.0, 0.5, 2.0])
+def test_tracking_error_is_the_share_of_the_true_displacement_the_gaussians_miss(tmp_path, follows):
+    """Gaussians that move at ``follows`` x the true velocity miss |1 - follows| of every displacement since the
+    anchor, whichever Gaussian each vertex is matched to; standing still (0) scores the travel itself."""
+    truth, frames = write_truth(tmp_path, times=(0.25, 0.5, 0.75))
+    model = plane_model(None)
+    model.deformation = Translation(follows * VELOCITY)
+    track = evaluate_motion(model, frames, truth).tracking
+    assert track.anchors == 3 and track.coverage > 0.9  # vertices that moved off the plane's edge have no Gaussian
+    # mean |t - t_a| over the pairs is 1/3 (each anchor's pairs weighted by its matched vertices: close to it)
+    assert track.travel == pytest.approx(float(VELOCITY.norm()) / 3, rel=2e-3)
+    assert track.relative == pytest.approx(abs(1.0 - follows), rel=1e-4)
+    assert track.error == pytest.approx(abs(1.0 - follows) * track.travel, rel=1e-4)
 
 
 def test_shifted_truth_gives_the_shift_as_error(tmp_path):
