@@ -81,6 +81,14 @@ class OptimConfig:
     video fixes each surface's depth at a time from one view only; measured depth removes that ambiguity."""
     static_warmup: Annotated[int, NON_NEGATIVE] = 0
     """Steps that train the canonical Gaussians only, before the deformation starts."""
+    time_curriculum_steps: Annotated[int, NON_NEGATIVE] = 0
+    """A time curriculum: over this many steps the training frames are drawn only from a window at the start of the
+    recording that grows linearly from ``time_curriculum_start`` of the training times' span to all of it (0: off,
+    every frame from the first step). With every time at once, a deformation field can rebuild a far-travelling
+    object from other Gaussians at each time instead of carrying one set along (positions right, identity and
+    motion lost: the 3D tracking error of ``pidg eval --motion-gt``); grown in time order, it has to follow."""
+    time_curriculum_start: Annotated[float, UNIT] = 0.1
+    """The curriculum's first window, as a share of the training times' span (read when time_curriculum_steps > 0)."""
     time_budget_minutes: Annotated[float, POSITIVE] | None = None
     """Stop early (with a checkpoint) when this much training time has passed; none: no budget."""
     dynamic_vote: Annotated[float, UNIT] = 0.4
@@ -272,4 +280,6 @@ def describe_schedule(config: TrainConfig) -> str:
         f"deformation, Grid4D tables 2^{g.spatial_grid.log2_table_size}/2^{g.temporal_grid.log2_table_size}, "
         f"{g.temporal_grid.n_levels} temporal levels up to {g.temporal_grid.finest_resolution}, width {g.width}, decoder depth {g.decoder_depth}"
         + (f"; flow loss on {config.flow.tile_fraction:g} of its tiles a step" if config.flow.enabled else "")
+        + (f"; time curriculum over {o.time_curriculum_steps} steps from {o.time_curriculum_start:g} of the recording"
+           if o.time_curriculum_steps else "")
     )

@@ -134,10 +134,23 @@ class Trainer:
 
     # ---- data -------------------------------------------------------------------------------------------
     def next_frame(self) -> Frame:
-        """Training frames in a fresh random order each epoch, from a generator saved in checkpoints."""
+        """Training frames in a fresh random order each epoch, from a generator saved in checkpoints; during a time
+        curriculum an epoch holds the frames inside the window of the step that starts it."""
         if not self._order:
-            self._order = torch.randperm(len(self.scene.train), generator=self.frame_generator).tolist()
+            order = torch.randperm(len(self.scene.train), generator=self.frame_generator).tolist()
+            end = self.time_window_end()
+            self._order = order if end is None else [i for i in order if self.scene.train[i].time <= end]
         return self.scene.train[self._order.pop()]
+
+    def time_window_end(self) -> float | None:
+        """The latest dataset time the time curriculum lets this step train on (None: no limit, the curriculum is off
+        or over); the window holds at least the first training time."""
+        steps, start = self.config.optim.time_curriculum_steps, self.config.optim.time_curriculum_start
+        if self.step >= steps:
+            return None
+        times = [frame.time for frame in self.scene.train]
+        first, last = min(times), max(times)
+        return first + (start + (1.0 - start) * self.step / steps) * (last - first)
 
     # ---- one step ---------------------------------------------------------------------------------------
     def deformation_active(self) -> bool:

@@ -58,10 +58,16 @@ def test_training_reduces_the_loss_and_densifies(scene, tmp_path):
     assert trainer.model.dynamic_mask is not None  # the procedural scene has motion masks: decoupled
 
 
-def test_resume_matches_an_uninterrupted_run(scene, tmp_path):
-    full = Trainer(tiny_config(tmp_path / "full"), scene)
+@pytest.mark.parametrize("curriculum", [0, 12])
+def test_resume_matches_an_uninterrupted_run(scene, tmp_path, curriculum):
+    def config(out_dir):
+        cfg = tiny_config(out_dir)
+        cfg.optim = dataclasses.replace(cfg.optim, time_curriculum_steps=curriculum)
+        return cfg
+
+    full = Trainer(config(tmp_path / "full"), scene)
     full.train()
-    half = Trainer(tiny_config(tmp_path / "half"), scene)
+    half = Trainer(config(tmp_path / "half"), scene)
     half.train(iterations=7)  # stops between densification rounds, writes its checkpoint
     resumed = Trainer.from_checkpoint(tmp_path / "half" / "checkpoint.pt", scene)
     assert resumed.step == 7
@@ -74,6 +80,29 @@ def test_resume_matches_an_uninterrupted_run(scene, tmp_path):
     assert torch.equal(full.model.gaussians.particle_index, resumed.model.gaussians.particle_index)
     for (n1, a), (n2, b) in zip(full.model.deformation.state_dict().items(), resumed.model.deformation.state_dict().items()):
         assert torch.allclose(a, b, atol=1e-5, rtol=1e-4), n1
+
+
+def test_a_time_curriculum_draws_from_a_window_that_grows_to_the_whole_recording(scene, tmp_path):
+    cfg = tiny_config(tmp_path)
+    cfg.optim = dataclasses.replace(cfg.optim, time_curriculum_steps=40, time_curriculum_start=0.25)
+    trainer = Trainer(cfg, scene)
+    times = sorted(f.time for f in scene.train)
+    first, last = times[0], times[-1]
+    assert trainer.time_window_end() == pytest.approx(first + 0.25 * (last - first))
+    drawn = []
+    for step in range(80):
+        trainer.step = step
+        frame = trainer.next_frame()
+        end = trainer.time_window_end()  # an epoch holds its first step's window, and windows only grow
+        assert end is None or frame.time <= end + 1e-9, (step, frame.time, end)
+        drawn.append(frame.time)
+    assert set(drawn[:2]) <= {t for t in times if t <= first + 0.25 * (last - first)}
+    assert last not in drawn[:20] and last in drawn[40:]  # the end of the recording only once the window reaches it
+    assert set(drawn[48:]) == set(times)  # after the curriculum: every frame, an epoch at a time
+    # off (the default): an epoch is the generator's permutation of every frame, as before the option existed
+    plain = Trainer(tiny_config(tmp_path / "plain"), scene)
+    order = torch.randperm(len(scene.train), generator=torch.Generator().manual_seed(plain.config.optim.seed)).tolist()
+    assert [plain.next_frame().name for _ in order] == [scene.train[i].name for i in reversed(order)]
 
 
 def physics_flow_config(out_dir, iterations=10) -> TrainConfig:
