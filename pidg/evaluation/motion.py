@@ -35,7 +35,7 @@ every vertex is matched to its nearest Gaussian as above; those Gaussians are th
 ground-truth sample time in [0, 1], and their displacement since the anchor is compared with their vertex's:
 error = mean |(g(t) - g(t_a)) - (x(t) - x(t_a))|, travel = mean |x(t) - x(t_a)| (world units; travel is a
 standing-still model's error), relative = the pooled error / travel (0: the Gaussians carry the surface along; 1: no
-better than standing still). Per-frame flow and velocity see a few frame intervals at most; a model that rebuilds a
+better than standing still), also per ground-truth object. Per-frame flow and velocity see a few frame intervals at most; a model that rebuilds a
 moving object from other Gaussians as it goes (the positions right, the particles' identity lost) scores well there
 and only fails here.
 
@@ -138,6 +138,7 @@ class TrackingScores:
     error: float | None  # mean |(g(t) - g(t_a)) - (x(t) - x(t_a))|
     travel: float | None  # mean |x(t) - x(t_a)|: the error of Gaussians that stand still
     relative: float | None  # pooled error / travel
+    per_object: dict[str, float | None] = field(default_factory=dict)  # relative, per ground-truth object
 
 
 @dataclass
@@ -198,9 +199,7 @@ class MotionEvaluation:
             f"{_num(v.deformation_along_ray)} / {_num(v.deformation_across_ray)}, field v {_num(v.field_along_ray)} / "
             f"{_num(v.field_across_ray)}, zero {_num(v.zero_along_ray)} / {_num(v.zero_across_ray)}; the true "
             f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} from the true displacement"
-            + ("" if self.tracking is None else f"; 3D tracking from the {self.tracking.anchors} view times through the "
-               f"recording: error {_num(self.tracking.error)} vs travel {_num(self.tracking.travel)} world units "
-               f"(relative {_num(self.tracking.relative)})")
+            + ("" if self.tracking is None else f"; {_tracking_text(self.tracking)}")
             + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
                f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
         )
@@ -221,6 +220,12 @@ UNITS = {
     "velocity": "world units per unit of dataset time (x frame_interval: *_per_frame, world units per frame interval)",
     "radius": "world units",
 }
+
+
+def _tracking_text(t: TrackingScores) -> str:
+    objects = "".join(f"; {name} {_num(rel)}" for name, rel in t.per_object.items()) if len(t.per_object) > 1 else ""
+    return (f"3D tracking from the {t.anchors} view times through the recording: error {_num(t.error)} vs travel "
+            f"{_num(t.travel)} world units (relative {_num(t.relative)}{objects})")
 
 
 def _px(v: float | None) -> str:
@@ -456,6 +461,10 @@ def _tracking_scores(
     truth_at = torch.from_numpy(vertices.positions[sample_of]).to(model.device)  # [T, V, 3]
     error_sum = travel_sum = 0.0
     samples = matched = 0
+    owner = torch.zeros(vertices.positions.shape[1], dtype=torch.long, device=model.device)  # vertex -> object
+    for i, obj in enumerate(truth.objects):
+        owner[obj.first_vertex : obj.first_vertex + obj.n_vertices] = i
+    object_sums = torch.zeros(len(truth.objects), 2, dtype=torch.float64, device=model.device)  # error, travel
     per_anchor: dict[float, dict[str, float | None]] = {}
     for t_a, (k, verts, gauss) in zip(anchors, matches):
         others = [i for i, s in enumerate(sample_of) if s != k]
@@ -468,12 +477,14 @@ def _tracking_scores(
         error = (moved - true_moved).norm(dim=-1).double()
         travel = true_moved.norm(dim=-1).double()
         error_sum, travel_sum = error_sum + float(error.sum()), travel_sum + float(travel.sum())
+        object_sums.index_add_(0, owner[verts], torch.stack([error.sum(0), travel.sum(0)], dim=-1))
         samples, matched = samples + error.numel(), matched + len(verts)
         per_anchor[t_a] = {"track_error": float(error.mean()), "track_travel": float(travel.mean())}
     scores = TrackingScores(
         anchors=len(anchors), samples=samples, coverage=matched / n_vertices if n_vertices else None,
         error=error_sum / samples if samples else None, travel=travel_sum / samples if samples else None,
         relative=error_sum / travel_sum if travel_sum > 0 else None,
+        per_object={obj.name: float(e / t) if t > 0 else None for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
     )
     return scores, per_anchor
 

@@ -108,17 +108,25 @@ CAMERA = Camera(torch.eye(4), 30.0, 30.0, W / 2, H / 2, W, H)
 EXPECTED_PX = (CAMERA.fx * VELOCITY[0] * DT / Z, CAMERA.fy * VELOCITY[1] * DT / Z)  # same for every Gaussian
 
 
-def write_truth(root, times=(0.25, 0.5), shift=(0.0, 0.0), scale=1, extra_vertex=False, v_gt=VELOCITY):
+def write_truth(root, times=(0.25, 0.5), shift=(0.0, 0.0), scale=1, extra_vertex=False, v_gt=VELOCITY, second_speed=None):
     """Ground truth for the plane model: a constant flow (+ ``shift``) at ``scale`` x the image size, with a NaN
-    band (no surface) and a band that is not dynamic; vertices at the Gaussians' positions (+ one far away)."""
+    band (no surface) and a band that is not dynamic; vertices at the Gaussians' positions (+ one far away).
+    ``second_speed``: the second half of the vertices is a second object whose vertices move at that multiple of
+    VELOCITY (the flows stay the first object's)."""
     model = plane_model(None)
     canonical = model.canonical().means.detach()[::5]
     if extra_vertex:
         canonical = torch.cat([canonical, torch.tensor([[0.0, 0.0, 50.0]])])
-    positions = np.stack([(canonical + t * VELOCITY).numpy() for t in times]).astype(np.float32)
+    half = len(canonical) // 2
+    speed = torch.ones(len(canonical), 1)
+    if second_speed is not None:
+        speed[half:] = second_speed
+    positions = np.stack([(canonical + t * speed * VELOCITY).numpy() for t in times]).astype(np.float32)
     velocities = np.broadcast_to(v_gt.numpy(), positions.shape).astype(np.float32)
     motion = VertexMotion(np.asarray(times, np.float64), positions, velocities, np.zeros((0, 3), np.int64))
-    write_motion_gt(root, DT, [MotionObject("plane", "rigid", 0, len(canonical))], motion)
+    objects = [MotionObject("plane", "rigid", 0, len(canonical))] if second_speed is None else [
+        MotionObject("first", "rigid", 0, half), MotionObject("second", "rigid", half, len(canonical) - half)]
+    write_motion_gt(root, DT, objects, motion)
     frames = []
     for i, t in enumerate(times):
         flow = np.empty((H * scale, W * scale, 2), np.float32)
@@ -183,6 +191,16 @@ def test_tracking_error_is_the_share_of_the_true_displacement_the_gaussians_miss
     assert track.travel == pytest.approx(float(VELOCITY.norm()) / 3, rel=2e-3)
     assert track.relative == pytest.approx(abs(1.0 - follows), rel=1e-4)
     assert track.error == pytest.approx(abs(1.0 - follows) * track.travel, rel=1e-4)
+    assert track.per_object == {"plane": pytest.approx(track.relative, rel=1e-9)}  # the truth's one object
+
+
+def test_tracking_is_also_scored_per_object(tmp_path):
+    truth, frames = write_truth(tmp_path, second_speed=2.0)  # the model follows the first object, at half the second's speed
+    result = evaluate_motion(plane_model(None), frames, truth)
+    per_object = result.tracking.per_object
+    assert per_object["first"] == pytest.approx(0.0, abs=1e-4) and per_object["second"] == pytest.approx(0.5, rel=1e-3)
+    assert 0.0 < result.tracking.relative < 0.5
+    assert "first 0.000; second 0.500" in result.summary()
 
 
 def test_shifted_truth_gives_the_shift_as_error(tmp_path):
