@@ -214,6 +214,16 @@ class MotionEvaluation:
         return svg_chart({k: v for k, v in series.items() if v}, f"dataset time ({self.split} views)", "end-point error (px)",
                          y_floor=0.0, empty_note="no view was scored")
 
+    def tracking_chart(self) -> str:
+        """The 3D tracking of every anchor (a scored view's time) as an SVG line chart in world units: how far its
+        Gaussians miss their vertices' displacement over the recording, beside that displacement (standing still's
+        error). Where the two lines meet, the Gaussians there do not follow the surface."""
+        rows = sorted((r for r in self.per_frame if r.get("track_error") is not None), key=lambda r: r["time"])
+        series = {"tracking error (Gaussians)": [(r["time"], r["track_error"]) for r in rows],
+                  "travel (standing still)": [(r["time"], r["track_travel"]) for r in rows]}
+        return svg_chart({k: v for k, v in series.items() if v}, f"anchor time ({self.split} views)",
+                         "mean distance (world units)", y_floor=0.0, empty_note="no vertex was matched")
+
 
 UNITS = {
     "flow": "pixels of the run's images, from t to t + frame_interval, camera held fixed",

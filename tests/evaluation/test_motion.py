@@ -403,6 +403,14 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     assert ys[_flat_index(data, max(values))] == pytest.approx(12.0, abs=0.051)  # coordinates are written to 0.1
     lowest = 12 + (1 - min(values) / max(values)) * (300 - 40 - 12)  # plot top 12 px, bottom 300 - 40 px = 0 px EPE
     assert ys[_flat_index(data, min(values))] == pytest.approx(lowest, abs=0.051)
+    # the 3D tracking per anchor: the Gaussians' error and the true travel, a point per test view
+    svg = (run / "eval_test" / "motion_gt_tracking.svg").read_text()
+    ElementTree.fromstring(svg)
+    tracks = [[tuple(map(float, p.split(","))) for p in pts.split()] for pts in re.findall(r'points="([^"]+)"', svg)]
+    assert len(tracks) == 2 and all(len(line) == 2 for line in tracks)
+    largest = max(max(r["track_error"], r["track_travel"]) for r in data["per_frame"])
+    assert min(y for line in tracks for _, y in line) == pytest.approx(12.0, abs=0.051)  # the largest at the top
+    assert largest > 0 and data["tracking"]["anchors"] == 2
 
 
 def _flat_index(data: dict, value: float) -> int:
