@@ -35,9 +35,9 @@ every vertex is matched to its nearest Gaussian as above; those Gaussians are th
 ground-truth sample time in [0, 1], and their displacement since the anchor is compared with their vertex's:
 error = mean |(g(t) - g(t_a)) - (x(t) - x(t_a))|, travel = mean |x(t) - x(t_a)| (world units; travel is a
 standing-still model's error), relative = the pooled error / travel (0: the Gaussians carry the surface along; 1: no
-better than standing still), also per ground-truth object. Per-frame flow and velocity see a few frame intervals at most; a model that rebuilds a
-moving object from other Gaussians as it goes (the positions right, the particles' identity lost) scores well there
-and only fails here.
+better than standing still), also per ground-truth object. Per-frame flow and velocity see a few frame intervals at
+most; a model that rebuilds a moving object from other Gaussians as it goes (the positions right, the particles'
+identity lost) scores well there and only fails here.
 
 **The flow target (training pairs).** What LPFM pulls the model's flows towards, the motion-flow target of each
 training pair (:func:`pidg.flow.model_flow_target`: the optical flow minus the camera flow of frame t+1's depth, the
