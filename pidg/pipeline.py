@@ -91,8 +91,9 @@ def evaluate_motion_and_save(
 ) -> MotionEvaluation:
     """The model's motion on a split against the scene's ground-truth motion (``truth``, else read from the
     dataset folder; :mod:`pidg.evaluation.motion`), written to RUN/eval_SPLIT/motion_gt.json, its per-frame errors
-    drawn over time in motion_gt_per_frame.svg and its 3D tracking in motion_gt_tracking.svg. With ``flow`` (the run's flow settings) the training pairs' flow
-    target is scored too, from ``flow_cache`` or else the scene's optical-flow cache (computed where missing)."""
+    drawn over time in motion_gt_per_frame.svg and its 3D tracking in motion_gt_tracking.svg. With ``flow`` (the
+    run's flow settings) the training pairs' flow target is scored too, from ``flow_cache`` or else the scene's
+    optical-flow cache (computed where missing)."""
     truth = truth if truth is not None else read_motion_gt(scene.root)
     evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius)
     if flow is not None:

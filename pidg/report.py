@@ -191,7 +191,8 @@ def build_report(paths: Sequence[Path], out: Path, device: str = "cpu", pictures
                      f"(EMA {SMOOTHING}); training views, so it measures the fit, not generalisation.</p>")
         for scene in dict.fromkeys(r.scene for r in runs):
             series = {r.label: psnr_curve(r.path) for r in runs if r.scene == scene}
-            parts.append(f"<h3>{html.escape(scene)}</h3>" + svg_chart(series, "training minutes", "PSNR (dB)", empty_note="the runs have no TensorBoard scalars"))
+            chart = svg_chart(series, "training minutes", "PSNR (dB)", empty_note="the runs have no TensorBoard scalars")
+            parts.append(f"<h3>{html.escape(scene)}</h3>" + chart)
     if pictures and runs:
         parts.append("<h2>Pictures</h2>")
         for i, run in enumerate(runs):

@@ -361,12 +361,13 @@ def default_radius(truth: MotionGroundTruth) -> float:
 
 @torch.no_grad()
 def _velocity_at(model: DynamicGaussians, t: float, points: Tensor, radius: float, h: float) -> dict[str, Tensor]:
-    """Matched-vertex mask, match distances and the two model velocities (dataset time) at the matched vertices."""
+    """Matched-vertex mask, the matched Gaussians and their distances, and the two model velocities (dataset time)
+    at the matched vertices."""
     means = model.at(t).means
     idx, dist = nearest_gaussians(points, means)
     hit = dist <= radius
     idx = idx[hit]
-    out = {"hit": hit, "distance": dist[hit], "deformation": model.motion_velocity(t, h)[idx]}
+    out = {"hit": hit, "gaussians": idx, "distance": dist[hit], "deformation": model.motion_velocity(t, h)[idx]}
     if model.material_field is not None:
         out["field"] = velocity_per_dataset_time(model.velocities(t, means)[idx], model.time_axis)
     return out
@@ -413,7 +414,7 @@ def evaluate_motion(
     gathered: dict[str, list[Tensor]] = {
         "speed_all": [], "speed": [], "distance": [], "deformation": [], "field": [], "ray": [], "v_gt": [], "euler": []
     }
-    times_done: set[float] = set()
+    matches: dict[float, tuple[Tensor, Tensor]] = {}  # vertex sample time -> matched vertices, their Gaussians
     for frame in frames:
         record: dict[str, Any] = {"view": frame.name, "time": frame.time}
         gt = truth.frame_flow(frame.name)
@@ -428,17 +429,17 @@ def evaluate_motion(
                 record[FLOW_KEYS[key]] = total / n if total is not None and n else None
             record.update(next_time=gt.next_time, pixels=n)
             pixels, scored = pixels + n, scored + 1
-        if frame.time not in times_done and _has_sample(truth, frame.time):
-            times_done.add(frame.time)
-            record.update(_score_vertices(model, truth, frame, radius, h, gathered))
+        if frame.time not in matches and _has_sample(truth, frame.time):
+            scores, matches[frame.time] = _score_vertices(model, truth, frame, radius, h, gathered)
+            record.update(scores)
         per_frame.append(record)
 
     def average(key: str) -> float | None:
         return sums[key] / pixels if pixels and (key != "velocity" or model.material_field is not None) else None
 
     flow_scores = FlowScores(scored, pixels, average("motion"), average("velocity"), average("gaussian"), average("zero"), skipped)
-    velocity = _velocity_scores(gathered, len(times_done), radius, h, speed_floor, truth.frame_interval)
-    tracking, per_anchor = _tracking_scores(model, truth, sorted(times_done), radius)
+    velocity = _velocity_scores(gathered, len(matches), radius, h, speed_floor, truth.frame_interval)
+    tracking, per_anchor = _tracking_scores(model, truth, dict(sorted(matches.items())))
     for record in per_frame:
         record.update(per_anchor.get(record["time"], {}))
     return MotionEvaluation(split, str(truth.root.parent), truth.frame_interval, flow_scores, velocity, per_frame,
@@ -446,24 +447,17 @@ def evaluate_motion(
 
 
 def _tracking_scores(
-    model: DynamicGaussians, truth: MotionGroundTruth, anchors: Sequence[float], radius: float
+    model: DynamicGaussians, truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor]]
 ) -> tuple[TrackingScores | None, dict[float, dict[str, float | None]]]:
     """The 3D tracking scores (module docstring) and, per anchor time, its ``track_error`` and ``track_travel``.
-    One deformation per anchor (matching) and one per ground-truth sample time (following)."""
+    ``matches``: per anchor time, the matched vertices and their Gaussians (the 3D velocity's matching,
+    :func:`_velocity_at`); one deformation per ground-truth sample time follows them."""
     vertices = truth.vertices
     times = [float(t) for t in vertices.times if -_TIME_TOL <= t <= 1.0 + _TIME_TOL]
-    if len(times) < 2 or not anchors:
+    if len(times) < 2 or not matches:
         return None, {}
-    matches = []  # (anchor index in vertices, matched vertex indices, their Gaussians)
-    n_vertices = 0
-    for t in anchors:
-        k = vertices.index_of(t, _TIME_TOL)
-        points = torch.from_numpy(vertices.positions[k]).to(model.device)
-        idx, dist = nearest_gaussians(points, model.at(t).means)
-        hit = dist <= radius
-        matches.append((k, hit.nonzero().squeeze(1), idx[hit]))
-        n_vertices += len(points)
-    rows = torch.unique(torch.cat([g for _, _, g in matches]))
+    n_vertices = len(matches) * vertices.positions.shape[1]
+    rows = torch.unique(torch.cat([g for _, g in matches.values()]))
     slot = torch.full((model.num_gaussians,), -1, dtype=torch.long, device=model.device)
     slot[rows] = torch.arange(len(rows), device=model.device)
     followed = torch.stack([model.at(t, rows=rows).means for t in times])  # [T, R, 3]
@@ -476,7 +470,8 @@ def _tracking_scores(
         owner[obj.first_vertex : obj.first_vertex + obj.n_vertices] = i
     object_sums = torch.zeros(len(truth.objects), 2, dtype=torch.float64, device=model.device)  # error, travel
     per_anchor: dict[float, dict[str, float | None]] = {}
-    for t_a, (k, verts, gauss) in zip(anchors, matches):
+    for t_a, (verts, gauss) in matches.items():
+        k = vertices.index_of(t_a, _TIME_TOL)
         others = [i for i, s in enumerate(sample_of) if s != k]
         if not len(verts) or not others:
             per_anchor[t_a] = {"track_error": None, "track_travel": None}
@@ -491,7 +486,7 @@ def _tracking_scores(
         samples, matched = samples + error.numel(), matched + len(verts)
         per_anchor[t_a] = {"track_error": float(error.mean()), "track_travel": float(travel.mean())}
     scores = TrackingScores(
-        anchors=len(anchors), samples=samples, coverage=matched / n_vertices if n_vertices else None,
+        anchors=len(matches), samples=samples, coverage=matched / n_vertices if n_vertices else None,
         error=error_sum / samples if samples else None, travel=travel_sum / samples if samples else None,
         relative=error_sum / travel_sum if travel_sum > 0 else None,
         per_object={obj.name: float(e / t) if t > 0 else None for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
@@ -509,10 +504,10 @@ def _has_sample(truth: MotionGroundTruth, t: float) -> bool:
 
 def _score_vertices(
     model: DynamicGaussians, truth: MotionGroundTruth, frame: Frame, radius: float, h: float, gathered: dict[str, list[Tensor]]
-) -> dict[str, float | None]:
+) -> tuple[dict[str, float | None], tuple[Tensor, Tensor]]:
     """Match the vertex sample at the frame's time to the model's Gaussians and add its speeds, distances, velocity
     errors, true velocities and unit rays from the frame's camera to the matched vertices to ``gathered``; the
-    frame's coverage, mean true speed and mean errors."""
+    frame's coverage, mean true speed and mean errors, and the match (matched vertex indices, their Gaussians)."""
     t = frame.time
     k = truth.vertices.index_of(t, _TIME_TOL)
     points = torch.from_numpy(truth.vertices.positions[k]).to(model.device)
@@ -536,7 +531,7 @@ def _score_vertices(
         if err is not None:
             gathered[key].append(err)
         record[f"{key}_mae"] = None if err is None else _mean(err.norm(dim=-1))
-    return record
+    return record, (found["hit"].nonzero().squeeze(1), found["gaussians"])
 
 
 def _velocity_scores(
