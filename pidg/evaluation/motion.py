@@ -155,6 +155,9 @@ class TargetScores:
     off_dynamic_pixels: int  # supervised pixels the truth calls static or background
     off_dynamic_flow: float | None  # mean |target| on them (the truth there: 0 or no surface)
     skipped: list[str] = field(default_factory=list)  # pairs (first frame) spanning more than one frame interval
+    #: per scored pair: first frame's name and time, its scored pixels and their target / zero-motion EPE (None: no
+    #: pixel scored): where in the recording the optical flow misleads the flow loss (a collision, a fast phase)
+    per_pair: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass
@@ -206,11 +209,15 @@ class MotionEvaluation:
 
     def per_frame_chart(self) -> str:
         """The flow errors of every scored frame against its dataset time, as an SVG line chart (EPE in px): where
-        in the recording the learned motion goes wrong (a collision, a fast phase), beside zero motion's error."""
+        in the recording the learned motion goes wrong (a collision, a fast phase), beside zero motion's error and,
+        where scored, the flow target's error on the training pairs (where the flow loss itself teaches wrong)."""
         names = {FLOW_KEYS["motion"]: "motion flow (deformation)", FLOW_KEYS["velocity"]: "velocity flow (field v)",
                  FLOW_KEYS["zero"]: "zero motion"}
         rows = sorted((r for r in self.per_frame if r.get(FLOW_KEYS["zero"]) is not None), key=lambda r: r["time"])
         series = {label: [(r["time"], r[key]) for r in rows if r.get(key) is not None] for key, label in names.items()}
+        if self.target is not None:
+            pairs = sorted((r for r in self.target.per_pair if r["target_epe"] is not None), key=lambda r: r["time"])
+            series["flow target (training pairs)"] = [(r["time"], r["target_epe"]) for r in pairs]
         return svg_chart({k: v for k, v in series.items() if v}, f"dataset time ({self.split} views)", "end-point error (px)",
                          y_floor=0.0, empty_note="no view was scored")
 
@@ -322,7 +329,7 @@ def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: Flow
     if config.target != "motion":
         return None
     sums = dict.fromkeys(("error", "zero", "pixels", "dynamic", "off_flow", "off_pixels"), 0.0)
-    scored, skipped, depth = 0, [], "dataset"
+    scored, skipped, depth, per_pair = 0, [], "dataset", []
     for k in range(len(cache)):
         pair = cache.pair(k)
         gt = truth.frame_flow(pair.frame0.name)
@@ -332,15 +339,20 @@ def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: Flow
         target, rendered = model_flow_target(model, pair, None, config)
         depth = "model" if rendered is not None else depth
         flow_gt, dynamic = resize_flow(torch.from_numpy(gt.flow), torch.from_numpy(gt.dynamic), (pair.frame0.width, pair.frame0.height))
-        for key, value in target_flow_sums(target, flow_gt.to(target.flow.device), dynamic.to(target.flow.device)).items():
+        pair_sums = target_flow_sums(target, flow_gt.to(target.flow.device), dynamic.to(target.flow.device))
+        for key, value in pair_sums.items():
             sums[key] += value
         scored += 1
+        m = pair_sums["pixels"]
+        per_pair.append({"frame": pair.frame0.name, "time": pair.frame0.time, "pixels": int(m),
+                         "target_epe": pair_sums["error"] / m if m else None, "zero_motion_epe": pair_sums["zero"] / m if m else None})
     n = sums["pixels"]
     return TargetScores(
         pairs=scored, pixels=int(n), depth=depth,
         target_epe=sums["error"] / n if n else None, zero_motion_epe=sums["zero"] / n if n else None,
         coverage=n / sums["dynamic"] if sums["dynamic"] else None, off_dynamic_pixels=int(sums["off_pixels"]),
         off_dynamic_flow=sums["off_flow"] / sums["off_pixels"] if sums["off_pixels"] else None, skipped=skipped,
+        per_pair=per_pair,
     )
 
 

@@ -350,6 +350,10 @@ def test_flow_target_of_a_still_camera_is_the_optical_flow_and_scores_the_truths
     assert scores.pixels == inside and scores.coverage == pytest.approx(inside / (H * W)) and scores.off_dynamic_pixels == 0
     assert scores.target_epe == pytest.approx(1.0, rel=1e-4)  # |(0.6, 0.8)|
     assert scores.zero_motion_epe == pytest.approx(math.hypot(3.6, -3.2), rel=1e-4)
+    [pair] = scores.per_pair  # the scored pair alone, with the same figures
+    assert pair["frame"] == "train/r_0000" and pair["time"] == pytest.approx(0.25) and pair["pixels"] == inside
+    assert pair["target_epe"] == pytest.approx(1.0, rel=1e-4)
+    assert pair["zero_motion_epe"] == pytest.approx(math.hypot(3.6, -3.2), rel=1e-4)
     assert evaluate_flow_target(plane_model(None), cache, FlowConfig(kind="lpfm", target="total"), truth) is None
 
 
@@ -392,13 +396,24 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     assert data["target"]["pairs"] == 5 and data["target"]["depth"] == "model" and data["target"]["skipped"] == []
     assert "flow target (train pairs, model depth)" in lines[0]
     assert (run / "eval_test" / "metrics.json").is_file()
+    # each scored pair's target error, and their pixel-weighted mean is the pooled one
+    pairs = data["target"]["per_pair"]
+    assert len(pairs) == 5 and len({r["frame"] for r in pairs}) == 5
+    assert sum(r["pixels"] for r in pairs) == data["target"]["pixels"]
+    pooled = sum(r["target_epe"] * r["pixels"] for r in pairs if r["pixels"]) / data["target"]["pixels"]
+    assert pooled == pytest.approx(data["target"]["target_epe"], rel=1e-9)
     # the per-frame errors drawn over time: one line per flow (and zero motion), a point per test view in time order,
-    # the largest per-frame error at the plot's top edge, the axis from 0 px
+    # then the target's line, a point per scored training pair; the largest error at the plot's top edge, the axis
+    # from 0 px
     svg = (run / "eval_test" / "motion_gt_per_frame.svg").read_text()
     ElementTree.fromstring(svg)
     lines_xy = [[tuple(map(float, p.split(","))) for p in pts.split()] for pts in re.findall(r'points="([^"]+)"', svg)]
-    assert len(lines_xy) == 3 and all(len(line) == 2 and line[0][0] < line[1][0] for line in lines_xy)
+    assert len(lines_xy) == 4 and all(len(line) == 2 and line[0][0] < line[1][0] for line in lines_xy[:3])
+    scored_pairs = [r for r in pairs if r["target_epe"] is not None]
+    assert len(lines_xy[3]) == len(scored_pairs) and scored_pairs
+    assert all(a[0] < b[0] for a, b in zip(lines_xy[3], lines_xy[3][1:]))  # in time order
     values = [r[k] for r in data["per_frame"] for k in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe")]
+    values += [r["target_epe"] for r in sorted(scored_pairs, key=lambda r: r["time"])]
     ys = [y for line in lines_xy for _, y in line]
     assert ys[_flat_index(data, max(values))] == pytest.approx(12.0, abs=0.051)  # coordinates are written to 0.1
     lowest = 12 + (1 - min(values) / max(values)) * (300 - 40 - 12)  # plot top 12 px, bottom 300 - 40 px = 0 px EPE
@@ -414,10 +429,12 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
 
 
 def _flat_index(data: dict, value: float) -> int:
-    """Where ``value`` sits in the chart's points (lines in the order motion, velocity, zero; points in time order)."""
+    """Where ``value`` sits in the chart's points (lines in the order motion, velocity, zero, flow target; points in
+    time order)."""
     frames = sorted(data["per_frame"], key=lambda r: r["time"])
     flat = [r[k] for k in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe") for r in frames]
-    return flat.index(value)
+    pairs = sorted((r for r in data["target"]["per_pair"] if r["target_epe"] is not None), key=lambda r: r["time"])
+    return (flat + [r["target_epe"] for r in pairs]).index(value)
 
 
 @pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
