@@ -155,8 +155,8 @@ class TargetScores:
     off_dynamic_pixels: int  # supervised pixels the truth calls static or background
     off_dynamic_flow: float | None  # mean |target| on them (the truth there: 0 or no surface)
     skipped: list[str] = field(default_factory=list)  # pairs (first frame) spanning more than one frame interval
-    #: per scored pair: first frame's name and time, its scored pixels and their target / zero-motion EPE (None: no
-    #: pixel scored): where in the recording the optical flow misleads the flow loss (a collision, a fast phase)
+    #: per scored pair: first frame's name and dataset time, its scored pixels and their target / zero-motion EPE in
+    #: pixels (None: no pixel scored): where in the recording the optical flow misleads the flow loss (a collision, a fast phase)
     per_pair: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -257,6 +257,11 @@ def _pct(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.1f}%"
 
 
+def _ratio(total: float, count: float) -> float | None:
+    """total / count, or None where nothing was counted (a mean over no pixels, samples or vertices)."""
+    return total / count if count else None
+
+
 def _mean(x: Tensor) -> float | None:
     return float(x.mean()) if x.numel() else None
 
@@ -329,7 +334,7 @@ def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: Flow
     if config.target != "motion":
         return None
     sums = dict.fromkeys(("error", "zero", "pixels", "dynamic", "off_flow", "off_pixels"), 0.0)
-    scored, skipped, depth, per_pair = 0, [], "dataset", []
+    skipped, depth, per_pair = [], "dataset", []
     for k in range(len(cache)):
         pair = cache.pair(k)
         gt = truth.frame_flow(pair.frame0.name)
@@ -342,17 +347,15 @@ def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: Flow
         pair_sums = target_flow_sums(target, flow_gt.to(target.flow.device), dynamic.to(target.flow.device))
         for key, value in pair_sums.items():
             sums[key] += value
-        scored += 1
         m = pair_sums["pixels"]
         per_pair.append({"frame": pair.frame0.name, "time": pair.frame0.time, "pixels": int(m),
-                         "target_epe": pair_sums["error"] / m if m else None, "zero_motion_epe": pair_sums["zero"] / m if m else None})
+                         "target_epe": _ratio(pair_sums["error"], m), "zero_motion_epe": _ratio(pair_sums["zero"], m)})
     n = sums["pixels"]
     return TargetScores(
-        pairs=scored, pixels=int(n), depth=depth,
-        target_epe=sums["error"] / n if n else None, zero_motion_epe=sums["zero"] / n if n else None,
-        coverage=n / sums["dynamic"] if sums["dynamic"] else None, off_dynamic_pixels=int(sums["off_pixels"]),
-        off_dynamic_flow=sums["off_flow"] / sums["off_pixels"] if sums["off_pixels"] else None, skipped=skipped,
-        per_pair=per_pair,
+        pairs=len(per_pair), pixels=int(n), depth=depth,
+        target_epe=_ratio(sums["error"], n), zero_motion_epe=_ratio(sums["zero"], n),
+        coverage=_ratio(n, sums["dynamic"]), off_dynamic_pixels=int(sums["off_pixels"]),
+        off_dynamic_flow=_ratio(sums["off_flow"], sums["off_pixels"]), skipped=skipped, per_pair=per_pair,
     )
 
 
@@ -498,9 +501,8 @@ def _tracking_scores(
         samples, matched = samples + error.numel(), matched + len(verts)
         per_anchor[t_a] = {"track_error": float(error.mean()), "track_travel": float(travel.mean())}
     scores = TrackingScores(
-        anchors=len(matches), samples=samples, coverage=matched / n_vertices if n_vertices else None,
-        error=error_sum / samples if samples else None, travel=travel_sum / samples if samples else None,
-        relative=error_sum / travel_sum if travel_sum > 0 else None,
+        anchors=len(matches), samples=samples, coverage=_ratio(matched, n_vertices),
+        error=_ratio(error_sum, samples), travel=_ratio(travel_sum, samples), relative=_ratio(error_sum, travel_sum),
         per_object={obj.name: float(e / t) if t > 0 else None for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
     )
     return scores, per_anchor
