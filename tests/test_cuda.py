@@ -33,7 +33,7 @@ def _config(data, out_dir, device: str, iterations: int = 12) -> TrainConfig:
     cfg.gaussians = dataclasses.replace(cfg.gaussians, init_opacity=0.8)
     cfg.densify = dataclasses.replace(cfg.densify, start=2, stop=8, every=2, opacity_reset_every=1000)
     cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations)
-    cfg.output = dataclasses.replace(cfg.output, dir=out_dir, checkpoint_every=0, progress=False, preview_every=0)
+    cfg.output = dataclasses.replace(cfg.output, dir=out_dir, checkpoint_every=0, progress=False, preview_every=0, log_every=1)
     return cfg
 
 

@@ -74,7 +74,7 @@ def test_evaluating_a_run_builds_nothing_for_training(full_run, monkeypatch):
     result = evaluate_run(full_run, "test", lpips_nets=())
     assert result["views"] == 2 and result["iterations"] == 8 and result["gaussians"] > 0
     run = load_run(full_run, ("test",))
-    model = DynamicGaussians.from_run(full_run)
+    model = DynamicGaussians.from_run(full_run, device=run.model.device)  # the device load_run chose (auto)
     frame = run.scene.test[0]
     with torch.no_grad():
         assert torch.equal(model.render(frame.camera, frame.time).rgb, run.model.render(frame.camera, frame.time).rgb)

@@ -1,6 +1,7 @@
 """MP4 videos of renders (imageio with the ffmpeg binary that the imageio-ffmpeg wheel ships)."""
 from __future__ import annotations
 
+import importlib.util
 import logging
 from pathlib import Path
 from typing import Iterable
@@ -11,6 +12,13 @@ from torch import Tensor
 from pidg.evaluation.images import to_uint8
 
 logger = logging.getLogger(__name__)
+FFMPEG_MISSING = "imageio-ffmpeg is not installed (pip install imageio-ffmpeg)"
+
+
+def ffmpeg_available() -> bool:
+    """Whether imageio can encode MP4: without the imageio-ffmpeg wheel it would hand a .mp4 to another plugin
+    (tifffile, where installed) that fails with an unrelated error."""
+    return importlib.util.find_spec("imageio_ffmpeg") is not None
 
 
 def write_video(frames: Iterable[Tensor | np.ndarray], path: Path | str, fps: int = 24) -> Path:
@@ -26,6 +34,8 @@ def write_video(frames: Iterable[Tensor | np.ndarray], path: Path | str, fps: in
     import imageio.v2 as imageio
 
     try:
+        if not ffmpeg_available():
+            raise ImportError(FFMPEG_MISSING)
         # macro_block_size=1: keep odd sizes as they are instead of silently resizing them
         with imageio.get_writer(path, fps=fps, codec="libx264", quality=8, macro_block_size=1, pixelformat="yuv420p"
                                 if all(s % 2 == 0 for s in arrays[0].shape[:2]) else "yuv444p") as writer:

@@ -4,7 +4,10 @@ are one line naming the fix."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
 import dataclasses
+import fcntl
 import json
+import sys
+import types
 
 import pytest
 import torch
@@ -78,6 +81,31 @@ def test_device_resolution_and_clear_errors(monkeypatch):
         rasterizer_for("cpu", torch.device("cuda"))
     with pytest.raises(DeviceUnavailable, match="CUDA only"):
         rasterizer_for("gsplat", torch.device("cpu"))
+
+
+def test_a_gsplat_that_cannot_render_stops_before_training_with_its_reason(monkeypatch):
+    """gsplat compiles its CUDA code on first use; a failed build is reported when the run starts, not at step 0,
+    and the first use holds a lock so that parallel processes do not delete each other's build."""
+    def broken(**kwargs):
+        raise ImportError("/root/.cache/torch_extensions/gsplat_cuda/gsplat_cuda.so: cannot open shared object file")
+
+    def working(**kwargs):
+        assert kwargs["means"].shape == (1, 3) and kwargs["Ks"].shape == (1, 3, 3)
+        with open(pidg.device.GSPLAT_BUILD_LOCK, "a") as other:  # another process's try: the probe holds the lock
+            with pytest.raises(BlockingIOError):
+                fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return None
+
+    for rasterization, expected in ((broken, "ImportError: /root/.cache/torch_extensions/gsplat_cuda/gsplat_cuda.so: cannot open"), (working, None)):
+        monkeypatch.setitem(sys.modules, "gsplat", types.SimpleNamespace(rasterization=rasterization))
+        pidg.device.gsplat_load_error.cache_clear()
+        found = pidg.device.gsplat_load_error(torch.device("cpu"))  # the probe runs on any device; CUDA in use
+        assert found == expected if expected is None else found.startswith(expected)
+    pidg.device.gsplat_load_error.cache_clear()
+    monkeypatch.setattr(pidg.device, "gsplat_installed", lambda: True)
+    monkeypatch.setattr(pidg.device, "gsplat_load_error", lambda device: "ImportError: no .so")
+    with pytest.raises(DeviceUnavailable, match=r"gsplat is installed but cannot render on cuda \(ImportError: no .so\).*--backend torch"):
+        rasterizer_for("auto", torch.device("cuda"))
 
 
 def test_cuda_without_cuda_is_one_line_not_a_traceback(tmp_path, monkeypatch, capsys):

@@ -28,6 +28,12 @@ def scene(rgbd_scene):
     return dataclasses.replace(rgbd_scene, splits=splits)
 
 
+# Exact resume is asserted where the kernels are deterministic. On CUDA, gsplat's backward and the hash-grid lookups'
+# backward accumulate with atomic adds in no fixed order, so CUDA runs are not bit-reproducible (on an H200 these tests'
+# resumed and uninterrupted CUDA runs differed beyond their tolerance); the other tests here run where the machine is.
+EXACT_RESUME_DEVICE = "cpu"
+
+
 def tiny_config(out_dir, iterations=16) -> TrainConfig:
     cfg = TrainConfig()
     cfg.deformation.grid4d = dataclasses.replace(
@@ -61,7 +67,7 @@ def test_training_reduces_the_loss_and_densifies(scene, tmp_path):
 @pytest.mark.parametrize("curriculum", [0, 12])
 def test_resume_matches_an_uninterrupted_run(scene, tmp_path, curriculum):
     def config(out_dir):
-        cfg = tiny_config(out_dir)
+        cfg = dataclasses.replace(tiny_config(out_dir), device=EXACT_RESUME_DEVICE)
         cfg.optim = dataclasses.replace(cfg.optim, time_curriculum_steps=curriculum)
         return cfg
 
@@ -138,7 +144,7 @@ def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh,
     # 6-step refresh it rebuilds them from depths kept from training renders, some of them before the interruption;
     # with half the tiles per step the resumed run draws the same tiles (the term's generator is checkpointed)
     def config(out_dir):
-        cfg = physics_flow_config(out_dir, iterations=14)
+        cfg = dataclasses.replace(physics_flow_config(out_dir, iterations=14), device=EXACT_RESUME_DEVICE)
         cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=refresh, tile_fraction=tiles)
         return cfg
 
@@ -231,7 +237,7 @@ def test_flow_targets_reuse_the_depth_of_frame_t1s_training_render(scene, tmp_pa
 def test_flow_target_prefers_the_dataset_depth_map(scene, tmp_path):
     trainer = Trainer(physics_flow_config(tmp_path, iterations=1), scene)
     pair = trainer.flow_cache.pair(0)
-    depth = torch.full((pair.frame1.height, pair.frame1.width), 3.5)
+    depth = torch.full((pair.frame1.height, pair.frame1.width), 3.5, device=pair.backward.device)
     pair.frame1.depth = depth
     flow_term = next(term for term in trainer.loss_terms if term.name == "lpfm")
     state_t1 = trainer.model.at(pair.frame1.time)
