@@ -14,7 +14,9 @@ from pidg.flow.decomposition import (
 from pidg.flow.gaussian_flow import (
     FLOW_CHANNELS,
     decode_depth_changes,
+    decode_depth_changes_at,
     decode_flows,
+    decode_flows_at,
     deformation_matrix,
     flow_channel_count,
     flow_features,
@@ -33,6 +35,7 @@ from pidg.flow.optical_flow import (
     FlowEstimatorUnavailable,
     forward_backward_consistency,
     make_estimator,
+    pixel_centers,
 )
 from pidg.flow.model_flow import (
     flow_camera_t1,
@@ -41,6 +44,7 @@ from pidg.flow.model_flow import (
     render_pair_flows,
     rendered_depth,
     supervised_flow_channels,
+    supervised_flow_loss,
 )
 from pidg.flow.preprocess import FlowCache, FlowPair, open_flow_cache, preprocess_flow, run_preprocess
 
@@ -54,7 +58,9 @@ __all__ = [
     "FlowTarget",
     "LPFMResult",
     "decode_depth_changes",
+    "decode_depth_changes_at",
     "decode_flows",
+    "decode_flows_at",
     "decompose_backward_flow",
     "deformation_matrix",
     "depth_change_target",
@@ -70,8 +76,10 @@ __all__ = [
     "gaussian_flow_features",
     "lpfm_loss",
     "make_estimator",
+    "pixel_centers",
     "model_flow_target",
     "supervised_flow_channels",
+    "supervised_flow_loss",
     "motion_flow_target",
     "motion_mask_from_flow",
     "open_flow_cache",

@@ -41,6 +41,12 @@ class FlowTarget:
     """[H, W] pixels per world unit, fx / z(t): converts a depth change in world units to the lateral image motion of
     the same 3D size, so that it weighs like a flow; 0 where the depth change is unknown."""
 
+    def at(self, index: Tensor) -> "FlowTarget":
+        """The target at K pixels, every field gathered to [K, ...]: ``index`` [K] holds row-major pixel indices
+        (y * W + x, e.g. ``mask.reshape(-1).nonzero().squeeze(1)``); what a loss that reads only those pixels needs."""
+        pick = lambda t: None if t is None else t.reshape(-1, *t.shape[2:]).index_select(0, index)  # noqa: E731
+        return FlowTarget(pick(self.flow), pick(self.valid), pick(self.depth_change), pick(self.depth_scale))  # type: ignore[arg-type]
+
 
 @dataclass
 class BackwardDecomposition:

@@ -114,11 +114,20 @@ def decode_flows(
     min_alpha. Depth-change channels are ignored (:func:`decode_depth_changes`)."""
     h, w = alpha.shape
     _check_rendered(features, h, w)
+    return decode_flows_at(features, alpha, pixel_centers(h, w, features.dtype, features.device), min_alpha)
+
+
+def decode_flows_at(
+    features: Tensor, alpha: Tensor, centers: Tensor, min_alpha: float = DECODE_MIN_ALPHA
+) -> tuple[Tensor, Tensor | None, Tensor]:
+    """:func:`decode_flows` for channels gathered at any set of pixels: ``features`` [..., C], ``alpha`` [...],
+    ``centers`` [..., 2] the pixels' centres (x + 0.5, y + 0.5). A loss that reads a few pixels decodes only those."""
+    if features.shape[-1] not in (6, 7, 8, 10) or features.shape[:-1] != alpha.shape or centers.shape != (*alpha.shape, 2):
+        raise ValueError(f"decode_flows_at: features [..., 6, 7, 8 or 10], alpha [...] and centers [..., 2] must share their "
+                         f"leading shape, got {list(features.shape)}, {list(alpha.shape)}, {list(centers.shape)}")
     velocity = features.shape[-1] in (8, 10)
-    p = pixel_centers(h, w, features.dtype, features.device)
     m, b_g, b_v = features[..., : 8 if velocity else 6].split([4, 2, 2 if velocity else 0], dim=-1)  # split: one backward
-    m = m.reshape(h, w, 2, 2)
-    mp = (m @ p.unsqueeze(-1)).squeeze(-1)
+    mp = (m.unflatten(-1, (2, 2)) * centers.unsqueeze(-2)).sum(-1)  # the 2x2 map applied to the centres
     valid, inv_alpha = _inverse_alpha(alpha, min_alpha)
     inv_alpha = inv_alpha.unsqueeze(-1)
     flow_g = (mp + b_g) * inv_alpha
@@ -143,6 +152,12 @@ def decode_depth_changes(features: Tensor, alpha: Tensor, min_alpha: float = DEC
     advection [H, W] or None (10 channels only), world units of camera-t depth; 0 where alpha <= min_alpha."""
     h, w = alpha.shape
     _check_rendered(features, h, w)
+    return decode_depth_changes_at(features, alpha, min_alpha)
+
+
+def decode_depth_changes_at(features: Tensor, alpha: Tensor, min_alpha: float = DECODE_MIN_ALPHA) -> tuple[Tensor, Tensor | None]:
+    """:func:`decode_depth_changes` for channels gathered at any set of pixels: ``features`` [..., 7 or 10],
+    ``alpha`` [...]."""
     if features.shape[-1] not in (7, 10):
         raise ValueError(f"features carry no depth-change channels ({features.shape[-1]} channels; 7 or 10 do)")
     _, inv_alpha = _inverse_alpha(alpha, min_alpha)

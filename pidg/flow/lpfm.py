@@ -44,19 +44,19 @@ class LPFMResult:
         return out
 
 
-def _check_flow(name: str, flow: Tensor, shape: tuple[int, int]) -> None:
+def _check_flow(name: str, flow: Tensor, shape: tuple[int, ...]) -> None:
     if tuple(flow.shape) != (*shape, 2):
-        raise ValueError(f"{name} must be [H, W, 2] = {[*shape, 2]}, got {list(flow.shape)}")
+        raise ValueError(f"{name} must be [H, W, 2] (or [K, 2] at K pixels) = {[*shape, 2]}, got {list(flow.shape)}")
 
 
-def _check_valid(valid: Tensor, shape: tuple[int, int]) -> None:
+def _check_valid(valid: Tensor, shape: tuple[int, ...]) -> None:
     if tuple(valid.shape) != shape or valid.dtype != torch.bool:
-        raise ValueError(f"valid must be a bool [H, W] = {list(shape)} mask, got {valid.dtype} {list(valid.shape)}")
+        raise ValueError(f"valid must be a bool [H, W] (or [K]) = {list(shape)} mask, got {valid.dtype} {list(valid.shape)}")
 
 
 def end_point_error(flow: Tensor, flow_gt: Tensor, valid: Tensor | None = None) -> Tensor:
     """Mean Euclidean distance |flow - flow_gt| in pixels over ``valid`` pixels (0 when there are none)."""
-    shape = (flow_gt.shape[0], flow_gt.shape[1]) if flow_gt.dim() == 3 else (-1, -1)
+    shape = tuple(flow_gt.shape[:-1])
     _check_flow("flow_gt", flow_gt, shape)
     _check_flow("flow", flow, shape)
     err = (flow - flow_gt).norm(dim=-1)
@@ -94,8 +94,9 @@ def lpfm_loss(
     motion-flow target on frame t's grid; ``alpha`` [H, W] is the rendered accumulated opacity. ``depth_changes``:
     the rendered depth changes of the Gaussians and of the velocity advection [H, W] (world units,
     :func:`pidg.flow.gaussian_flow.decode_depth_changes`), scored when the target carries its depth change and
-    ``config.lambda_depth_change`` > 0."""
-    shape = (target.flow.shape[0], target.flow.shape[1])
+    ``config.lambda_depth_change`` > 0. Every field may instead be gathered at K pixels ([K, 2], [K]: the target's
+    :meth:`FlowTarget.at` and :func:`pidg.flow.gaussian_flow.decode_flows_at`), for the same loss at less cost."""
+    shape = tuple(target.flow.shape[:-1])
     _check_flow("flow_gt", target.flow, shape)
     _check_flow("flow_gaussian", flow_gaussian, shape)
     if flow_velocity is not None:

@@ -10,7 +10,13 @@ from torch import Tensor
 
 from pidg.flow.config import FlowConfig
 from pidg.flow.decomposition import FlowTarget
-from pidg.flow.gaussian_flow import decode_flows, flow_channel_count, gaussian_flow_features
+from pidg.flow.gaussian_flow import (
+    decode_depth_changes_at,
+    decode_flows,
+    decode_flows_at,
+    flow_channel_count,
+    gaussian_flow_features,
+)
 from pidg.flow.lpfm import LPFMResult, depth_from_render, flow_target_for_pair, lpfm_loss
 from pidg.flow.preprocess import FlowPair
 from pidg.models.deformation import DeformedGaussians
@@ -83,6 +89,22 @@ def supervised_flow_channels(
         model.backend, depth_change,
     )
     return out.index_copy(0, rows, sub.to(out.dtype))
+
+
+def supervised_flow_loss(features: Tensor, alpha: Tensor, target: FlowTarget, config: FlowConfig) -> LPFMResult:
+    """:func:`pidg.flow.lpfm.lpfm_loss` of a render's flow channels [H, W, C] (alpha [H, W]) against ``target``,
+    decoding and scoring only the target's valid pixels: the loss reads nothing else, and they are a few % of
+    the image (moving objects, a share of the tiles). The same loss, diagnostics and gradients as decoding the
+    whole render with :func:`pidg.flow.gaussian_flow.decode_flows`."""
+    index = target.valid.reshape(-1).nonzero().squeeze(1)  # row-major pixel indices y * W + x
+    width = target.valid.shape[1]
+    features = features.reshape(-1, features.shape[-1]).index_select(0, index)
+    alpha = alpha.reshape(-1).index_select(0, index)
+    x, y = index % width, torch.div(index, width, rounding_mode="floor")
+    centers = torch.stack([x, y], dim=-1).to(features.dtype) + 0.5
+    flow_g, flow_v, _ = decode_flows_at(features, alpha, centers)
+    depth_changes = decode_depth_changes_at(features, alpha) if target.depth_change is not None else None
+    return lpfm_loss(flow_g, flow_v, target.at(index), alpha, config, depth_changes)
 
 
 @torch.no_grad()

@@ -9,16 +9,19 @@ adds nothing there. The test is conservative by one pixel on every side.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 
 def pixel_count_table(mask: Tensor) -> Tensor:
-    """Summed-area table [H + 1, W + 1] (int64) of a bool mask [H, W]: S[y, x] = mask[:y, :x].sum()."""
+    """Summed-area table [H + 1, W + 1] (int32: exact below 2^31 pixels) of a bool mask [H, W]:
+    S[y, x] = mask[:y, :x].sum()."""
     if mask.dim() != 2:
         raise ValueError(f"pixel_count_table: mask must be [H, W], got {list(mask.shape)}")
-    table = torch.zeros(mask.shape[0] + 1, mask.shape[1] + 1, dtype=torch.int64, device=mask.device)
-    table[1:, 1:] = mask.to(torch.int64).cumsum(0).cumsum(1)
-    return table
+    if mask.numel() >= 2**31:
+        raise ValueError(f"pixel_count_table: {mask.numel()} pixels overflow its int32 counts")
+    counts = F.pad(mask.to(torch.int32), (1, 0, 1, 0))
+    return counts.cumsum(0, dtype=torch.int32).cumsum(1, dtype=torch.int32)
 
 
 @torch.no_grad()
@@ -39,5 +42,6 @@ def footprints_touching(means2d: Tensor, radii: Tensor, mask: Tensor) -> Tensor:
     inside = (hi[:, 0] >= 0) & (lo[:, 0] <= w - 1) & (hi[:, 1] >= 0) & (lo[:, 1] <= h - 1)
     drawn = (radii > 0).all(dim=-1) & torch.isfinite(m).all(dim=-1) & inside
     y1p, x1p = (y1 + 1).clamp_min(0), (x1 + 1).clamp_min(0)
-    count = table[y1p, x1p] - table[y0, x1p] - table[y1p, x0] + table[y0, x0]
+    flat, stride = table.reshape(-1), w + 1  # one flat gather per corner: cheaper than 2-D advanced indexing
+    count = flat[y1p * stride + x1p] - flat[y0 * stride + x1p] - flat[y1p * stride + x0] + flat[y0 * stride + x0]
     return drawn & (count > 0)

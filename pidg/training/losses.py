@@ -29,15 +29,13 @@ from pidg.flow import (
     FlowConfig,
     FlowPair,
     FlowTarget,
-    decode_depth_changes,
-    decode_flows,
     depth_from_render,
     flow_camera_t1,
     flow_target_for_pair,
-    lpfm_loss,
     model_flow_target,
     sample_tiles,
     supervised_flow_channels,
+    supervised_flow_loss,
 )
 from pidg.metrics import ssim
 from pidg.models.deformation import DeformedGaussians
@@ -322,9 +320,7 @@ class FlowMatchingLoss(LossTerm):
         if self._pending is None or features is None:
             return render.rgb.new_zeros(()), {}
         (_, target), self._pending = self._pending, None
-        flow_g, flow_v, _ = decode_flows(features, render.alpha)
-        depth_changes = decode_depth_changes(features, render.alpha) if target.depth_change is not None else None
-        result = lpfm_loss(flow_g, flow_v, target, render.alpha, self.config, depth_changes)
+        result = supervised_flow_loss(features, render.alpha, target, self.config)
         return self.config.lambda_lpfm * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}
 
     def observe(self, inputs: StepInputs, render: RenderOutput) -> None:

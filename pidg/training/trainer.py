@@ -460,6 +460,8 @@ def _split_features(features: Tensor | None, slices: dict[str, slice]) -> dict[s
     the whole feature image per term in the backward)."""
     if features is None or not slices:
         return {}
+    if len(slices) == 1:  # one term's columns are all of them (its split would only copy the gradient back)
+        return {next(iter(slices)): features}
     names = sorted(slices, key=lambda name: slices[name].start)
     sizes = [slices[name].stop - slices[name].start for name in names]
     return dict(zip(names, features.split(sizes, dim=-1)))

@@ -152,3 +152,32 @@ def test_sample_tiles_keeps_a_band_of_the_occupied_tiles_each_equally_often():
     assert not sample_tiles(torch.zeros(20, 20, dtype=torch.bool), 0.5, gen).any()
     with pytest.raises(ValueError, match=r"fraction must be in \(0, 1\]"):
         sample_tiles(valid, 0.0, gen)
+
+
+@pytest.mark.parametrize("channels", [6, 8, 10])
+def test_the_loss_at_its_supervised_pixels_equals_the_loss_on_the_whole_image(channels):
+    """The training term decodes and scores only the target's valid pixels (supervised_flow_loss): the same loss,
+    diagnostics and gradients as decoding the whole render."""
+    from pidg.flow.gaussian_flow import decode_depth_changes, decode_flows, decode_flows_at
+    from pidg.flow.model_flow import supervised_flow_loss
+
+    g = torch.Generator().manual_seed(3)
+    features = (torch.randn(H, W, channels, generator=g) * 3).requires_grad_(True)
+    alpha = torch.rand(H, W, generator=g) * 0.9 + 0.02  # some under min_alpha
+    valid = torch.rand(H, W, generator=g) > 0.4
+    depth = channels == 10
+    target = FlowTarget(torch.randn(H, W, 2, generator=g) * 4 * valid.unsqueeze(-1), valid,
+                        torch.randn(H, W, generator=g) if depth else None, (torch.rand(H, W, generator=g) > 0.3).float() * 5 if depth else None)
+    config = FlowConfig(lambda_gaussian=0.5, lambda_velocity=0.5, lambda_depth_change=1.0 if depth else 0.0, min_alpha=0.05)
+
+    flow_g, flow_v, _ = decode_flows(features, alpha)
+    dense = lpfm_loss(flow_g, flow_v, target, alpha, config, decode_depth_changes(features, alpha) if depth else None)
+    (dense_grad,) = torch.autograd.grad(dense.loss, features)
+    sparse = supervised_flow_loss(features, alpha, target, config)
+    (sparse_grad,) = torch.autograd.grad(sparse.loss, features)
+
+    assert sparse.loss.item() == pytest.approx(dense.loss.item(), rel=1e-6) and dense.loss.item() > 0
+    assert sparse.scalars() == pytest.approx(dense.scalars(), rel=1e-6)
+    assert torch.allclose(sparse_grad, dense_grad, atol=1e-7) and dense_grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="share their leading shape"):
+        decode_flows_at(features[valid], alpha[valid][:-1], torch.zeros(int(valid.sum()), 2))
