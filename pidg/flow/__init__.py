@@ -35,7 +35,6 @@ from pidg.flow.optical_flow import (
     FlowEstimatorUnavailable,
     forward_backward_consistency,
     make_estimator,
-    pixel_centers,
 )
 from pidg.flow.model_flow import (
     flow_camera_t1,
@@ -76,7 +75,6 @@ __all__ = [
     "gaussian_flow_features",
     "lpfm_loss",
     "make_estimator",
-    "pixel_centers",
     "model_flow_target",
     "supervised_flow_channels",
     "supervised_flow_loss",
