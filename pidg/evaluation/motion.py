@@ -503,7 +503,7 @@ def _tracking_scores(
     scores = TrackingScores(
         anchors=len(matches), samples=samples, coverage=_ratio(matched, n_vertices),
         error=_ratio(error_sum, samples), travel=_ratio(travel_sum, samples), relative=_ratio(error_sum, travel_sum),
-        per_object={obj.name: float(e / t) if t > 0 else None for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
+        per_object={obj.name: _ratio(e, t) for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
     )
     return scores, per_anchor
 
@@ -582,7 +582,7 @@ def _velocity_scores(
     d_ray, f_ray, z_ray = along_across("deformation"), along_across("field"), along_across("v_gt")  # zero: error = -v_gt
     return VelocityScores(
         times=times, vertex_samples=vertex_samples, matched=matched,
-        coverage=matched / vertex_samples if vertex_samples else None, radius=radius, fd_step=h, speed_floor=floor,
+        coverage=_ratio(matched, vertex_samples), radius=radius, fd_step=h, speed_floor=floor,
         relative_samples=int(counted.sum()), match_distance=_mean(cat("distance")),
         deformation_mae=d_mae, deformation_mae_per_frame=d_frame, deformation_rel=d_rel,
         field_mae=f_mae, field_mae_per_frame=f_frame, field_rel=f_rel,

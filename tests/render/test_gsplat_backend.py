@@ -100,6 +100,8 @@ def test_gsplat_gradients_match_cpu_kernel():
     bg = torch.tensor([0.1, 0.2, 0.3])
     names = ("means", "quats", "scales", "opacities", "colors", "features")
     weights = torch.Generator().manual_seed(2)
+    shapes = {"rgb": (64, 96, 3), "alpha": (64, 96), "depth": (64, 96), "features": (64, 96, 5)}
+    channel_weights = {c: torch.rand(s, generator=weights) for c, s in shapes.items()}
 
     def grads(backend: str, device: str) -> dict[str, torch.Tensor]:
         leaves = {n: getattr(scene, n).detach().to(device).requires_grad_(True) for n in names}
@@ -111,8 +113,6 @@ def test_gsplat_gradients_match_cpu_kernel():
         found["means2d"] = out.means2d_grad().cpu()
         return found
 
-    shapes = {"rgb": (64, 96, 3), "alpha": (64, 96), "depth": (64, 96), "features": (64, 96, 5)}
-    channel_weights = {c: torch.rand(s, generator=weights) for c, s in shapes.items()}
     cpu, gpu = grads("cpu", "cpu"), grads("gsplat", "cuda")
     for name, expected in cpu.items():
         scale = expected.abs().max().clamp_min(1e-6)
