@@ -423,7 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
     step.add_argument("--downscale", default="400x400", help="factor or WxH")
     step.add_argument("--gaussians", type=int, default=20_000, help="Gaussians (random init / subsampled cloud), no densification")
     step.add_argument("--iterations", type=int, default=60, help="timed steps per variant (after 10 warm-up steps)")
-    step.add_argument("--out", default="outputs/bench/step.json", help="JSON with all figures ('' for none)")
+    step.add_argument("--out", default="outputs/bench/step.json", help="JSON: the commit, the machine and each variant's figures ('' for none)")
     step.add_argument("--from-run", default=None, help="start from this run's trained Gaussians (its checkpoint) instead of a random init")
     _add_run_options(step, "SCENE ")
     step.set_defaults(func=_cmd_bench_step)

@@ -11,9 +11,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numba
 import torch
 
+from pidg.bench.provenance import git_commit, machine, machine_line
 from pidg.bench.timing import interleaved_medians, peak_rss_growth_mib
 from pidg.render import rasterize
 from pidg.render.projection import project_gaussians
@@ -117,8 +117,8 @@ def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, lo
     log("fwd, fwd+bwd: a whole rasterize() call (projection in torch autograd + compositing).")
     log("composite: binning + compositing forward + backward alone, on fixed projections: the part the kernel implements.")
     log("Times are medians of interleaved repetitions; peak MB is the RSS growth of one fwd+bwd in a fresh process.")
-    log(f"torch threads: {torch.get_num_threads()}, numba threads: {_numba_threads()}, "
-        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+    here = machine()
+    log(f"{machine_line(here)}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     header = (f"{'case':<5}{'N':>8}{'px':>6}{'pairs':>12}{'backend':>9}{'fwd ms':>9}{'fwd+bwd ms':>12}"
               f"{'composite ms':>14}{'peak MB':>9}")
     log(header)
@@ -161,7 +161,8 @@ def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, lo
 
     scaling = _scaling(config, rows, log)
     sweep = _feature_sweep(config, log)
-    result = {"config": asdict(config), "rows": rows, "scaling": scaling, "feature_sweep": sweep}
+    result = {"config": asdict(config), "git_commit": git_commit(), "machine": here, "rows": rows, "scaling": scaling,
+              "feature_sweep": sweep}
     if out_path is not None:
         out_path.parent.mkdir(parents=True, exist_ok=True)
         out_path.write_text(json.dumps(result, indent=2))
@@ -204,6 +205,3 @@ def _scaling(config: RenderBenchConfig, rows: list[dict], log: Callable[[str], N
         f"({out['b_ms']:.1f} -> {out['c_ms']:.1f} ms): {verdict}")
     return out
 
-
-def _numba_threads() -> int:
-    return numba.get_num_threads()

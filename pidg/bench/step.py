@@ -12,6 +12,7 @@ from typing import Callable
 
 import torch
 
+from pidg.bench.provenance import git_commit, machine, machine_line
 from pidg.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from pidg.config_tools import apply_overrides
 from pidg.data import load_scene
@@ -86,10 +87,12 @@ def run_step_bench(
             "projected_minutes": trainer.config.optim.iterations / max(summary["iterations_per_second"], 1e-9) / 60.0,
             "projected_iterations": trainer.config.optim.iterations,
         }
+    here = machine()
     log(format_step_table(results, f"{scene.name} {scene.train[0].width}x{scene.train[0].height}"))
+    log(f"  {machine_line(here)}")
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(results, indent=2))
+        out.write_text(json.dumps({"git_commit": git_commit(), "machine": here, "variants": results}, indent=2))
     return results
 
 

@@ -16,18 +16,14 @@ import dataclasses
 import json
 import logging
 import math
-import os
-import platform
-import subprocess
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, Sequence
 
-import torch
-
 from pidg.bench.executors import run_local
+from pidg.bench.provenance import git_commit, machine
 from pidg.config_tools import apply_overrides, from_jsonable, to_jsonable
 from pidg.data import dataset_layout, detect_format, load_scene
 from pidg.data.motion_gt import has_motion_gt
@@ -232,30 +228,6 @@ def _train_and_evaluate(job: Job) -> list[dict[str, Any]]:
 
 
 # ---- provenance ---------------------------------------------------------------------------------------------------
-def git_commit() -> str | None:
-    """The commit of the pidg source tree, with ``+dirty`` when it has uncommitted changes; None outside git."""
-    src = Path(__file__).resolve().parents[2]
-    try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=src, capture_output=True, text=True, timeout=10, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=src, capture_output=True,
-                               text=True, timeout=10, check=True)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
-
-
-def machine() -> dict[str, Any]:
-    """Where a row was computed: host, OS, Python, torch, CPU count and GPU."""
-    return {
-        "host": platform.node(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "cpus": os.cpu_count(),
-        "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-    }
-
-
 # ---- tables -------------------------------------------------------------------------------------------------------
 METRIC_NAMES = {"psnr": "PSNR↑", "ssim": "SSIM↑", "ssim_zeros": "SSIM↑", "ms_ssim": "MS-SSIM↑",
                 "lpips_alex": "LPIPS-A↓", "lpips_vgg": "LPIPS-V↓"}
@@ -422,7 +394,8 @@ def run_suite(
     budget = f"{minutes:g} min" if minutes else f"{base.optim.iterations} iterations"
     here = machine()
     header = [f"{spec.description}.", f"Budget per job: {budget}, seed {base.optim.seed}, commit {git_commit()}, "
-              f"{here['platform']}, {here['cpus']} CPUs, GPU {here['gpu']}.", ""]
+              f"{here['platform']}, {here['cpu_model']} ({here['cpus']} CPUs, kernels for {here['cpu_target']}, "
+              f"{here['vector_isa']}), GPU {here['gpu']}.", ""]
 
     def write(new_rows: list[dict]) -> None:
         rows.extend(new_rows)

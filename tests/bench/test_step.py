@@ -3,6 +3,7 @@ kept from training renders, so a timed step renders once, as in a real run."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
 import dataclasses
+import json
 
 from pidg.bench.step import run_step_bench
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
@@ -29,8 +30,11 @@ def test_step_bench_times_steady_state_steps(tmp_path, monkeypatch):
     monkeypatch.setattr(DynamicGaussians, "render_state", lambda self, *a, **k: renders.append(1) or original(self, *a, **k))
     warmup, iterations = 3, 4
     results = run_step_bench(
-        root, cfg, ["base", "full"], downscale=None, gaussians=200, iterations=iterations, warmup=warmup, chunk=2, out=None, log=lambda _: None
+        root, cfg, ["base", "full"], downscale=None, gaussians=200, iterations=iterations, warmup=warmup, chunk=2,
+        out=tmp_path / "step.json", log=lambda _: None
     )
+    written = json.loads((tmp_path / "step.json").read_text())
+    assert set(written["variants"]) == {"base", "full"} and written["machine"]["cpu_target"] and "git_commit" in written
     assert {"flow", "flow_target", "physics"} <= set(results["full"]["step_breakdown_ms"])
     assert "flow" not in results["base"]["step_breakdown_ms"]
     # base: one render per step; full: one per training frame to start from (its kept depths), then one per step

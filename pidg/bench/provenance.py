@@ -1,0 +1,75 @@
+"""Where and from what a benchmark figure was measured: the source commit and the machine.
+
+Absolute times only compare on the same processor: the numba kernels are compiled for the host CPU, and a CPU
+with 128-bit vector units (AMD Zen 1) runs the same 16-lane loops at about half the rate of one with 256-bit
+units. Every bench therefore records the CPU model, the target LLVM compiled the kernels for and the widest
+vector instruction set it could use, beside the thread counts.
+"""
+from __future__ import annotations
+
+import os
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import llvmlite.binding as llvm
+import numba
+import torch
+
+#: The vector instruction sets the compiled kernels can use, widest first (LLVM feature names).
+VECTOR_ISAS = ("avx512f", "avx2", "avx", "sse4.2", "neon")
+
+
+def git_commit() -> str | None:
+    """The commit of the pidg source tree, with ``+dirty`` when it has uncommitted changes; None outside git."""
+    src = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=src, capture_output=True, text=True, timeout=10, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=src, capture_output=True,
+                               text=True, timeout=10, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
+def cpu_model() -> str:
+    """The processor's marketing name (``/proc/cpuinfo`` on Linux, else what the platform reports)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def vector_isa(features: str) -> str | None:
+    """The widest of :data:`VECTOR_ISAS` enabled in an LLVM feature string (``+avx2,-avx512f,...``)."""
+    enabled = {f[1:] for f in features.split(",") if f.startswith("+")}
+    return next((isa for isa in VECTOR_ISAS if isa in enabled), None)
+
+
+def machine() -> dict[str, Any]:
+    """Where a figure was computed: host, OS, Python, torch, CPUs (model, compile target, vector width, threads)
+    and GPU."""
+    return {
+        "host": platform.node(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cpus": os.cpu_count(),
+        "cpu_model": cpu_model(),
+        "cpu_target": llvm.get_host_cpu_name(),  # what numba compiles the kernels for
+        "vector_isa": vector_isa(llvm.get_host_cpu_features().flatten()),
+        "torch_threads": torch.get_num_threads(),
+        "numba_threads": numba.get_num_threads(),
+        "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+
+
+def machine_line(here: dict[str, Any]) -> str:
+    """One line for a bench's log: enough to tell whether two logs' absolute times can be compared."""
+    return (f"machine: {here['cpu_model']} (kernels compiled for {here['cpu_target']}, {here['vector_isa']}), "
+            f"{here['cpus']} CPUs, torch threads {here['torch_threads']}, numba threads {here['numba_threads']}, "
+            f"GPU {here['gpu']}; commit {git_commit()}")
