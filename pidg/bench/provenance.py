@@ -1,9 +1,9 @@
 """Where and from what a benchmark figure was measured: the source commit and the machine.
 
-Absolute times only compare on the same processor: the numba kernels are compiled for the host CPU, and a CPU
-with 128-bit vector units (AMD Zen 1) runs the same 16-lane loops at about half the rate of one with 256-bit
-units. Every bench therefore records the CPU model, the target LLVM compiled the kernels for and the widest
-vector instruction set it could use, beside the thread counts.
+Absolute times only compare on the same processor: the numba kernels are compiled for the host CPU, and the same
+code ran the issue-15 OpenSplat case 3x slower on a host compiled for ``znver1`` (AVX2 split over 128-bit units)
+than on the processor of earlier figures. Every bench therefore records the CPU model, the target LLVM compiled
+the kernels for and the widest vector instruction set it could use, beside the thread counts.
 """
 from __future__ import annotations
 
