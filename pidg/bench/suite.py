@@ -227,7 +227,6 @@ def _train_and_evaluate(job: Job) -> list[dict[str, Any]]:
     ]
 
 
-# ---- provenance ---------------------------------------------------------------------------------------------------
 # ---- tables -------------------------------------------------------------------------------------------------------
 METRIC_NAMES = {"psnr": "PSNR↑", "ssim": "SSIM↑", "ssim_zeros": "SSIM↑", "ms_ssim": "MS-SSIM↑",
                 "lpips_alex": "LPIPS-A↓", "lpips_vgg": "LPIPS-V↓"}
