@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from pidg.bench.provenance import machine, machine_line
+from pidg.bench.provenance import git_commit, machine, machine_line
 from pidg.bench.timing import interleaved_medians, peak_rss_growth_mib
 from pidg.device import synchronize
 from pidg.models.jet import FieldJet, jet_from_function
@@ -110,7 +110,7 @@ def bench_cmr(config: CMRBenchConfig | None = None, log: Callable[[str], None] =
     """Median forward + backward ms per (M, variant, block), and peak MiB per (N, M, variant, block)."""
     config = config or CMRBenchConfig()
     base, mat = config.physics, config.material
-    log(machine_line(machine()))
+    log(machine_line(machine(), git_commit()))
     log(f"device {config.device}, torch threads {torch.get_num_threads()}; width {mat.width}, depth {mat.depth}, activation {mat.activation}, "
         f"planes {mat.spatial_resolution}^2 / {mat.spatial_resolution}x{mat.time_resolution} x {mat.plane_channels}")
     n_time = config.particles[0]

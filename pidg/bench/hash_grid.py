@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pidg.bench.provenance import machine, machine_line
+from pidg.bench.provenance import git_commit, machine, machine_line
 from pidg.models.deformation.hash_grid import GRID4D_SPATIAL, GRID4D_TEMPORAL, HashGrid, HashGridBackend, hash_encode
 
 
@@ -54,7 +54,8 @@ def bench_hash_grid(n_points: int = 20_000, repeats: int = 3, seed: int = 0) -> 
             times[name].extend(run() for _ in range(1 if name == "torch_all" else 5))
     results = {name: float(np.median(t)) for name, t in times.items()}
     results["speedup"] = results["torch_all"] / results["kernel_all"]
-    print(f"hash grids (Grid4D config), {n_points} points, forward + backward, median seconds; {machine_line(machine())}")
+    print(f"hash grids (Grid4D config), {n_points} points, forward + backward, median seconds; "
+          f"{machine_line(machine(), git_commit())}")
     for name, value in results.items():
         print(f"  {name:24s} {value:8.4f}" + ("x" if name == "speedup" else " s"))
     return results

@@ -68,8 +68,9 @@ def machine() -> dict[str, Any]:
     }
 
 
-def machine_line(here: dict[str, Any]) -> str:
-    """One line for a bench's log: enough to tell whether two logs' absolute times can be compared."""
+def machine_line(here: dict[str, Any], commit: str | None) -> str:
+    """One line for a bench's log (``here`` from :func:`machine`, ``commit`` from :func:`git_commit`, read once by
+    the caller, which also stores it): enough to tell whether two logs' absolute times can be compared."""
     return (f"machine: {here['cpu_model']} (kernels compiled for {here['cpu_target']}, {here['vector_isa']}), "
             f"{here['cpus']} CPUs, torch threads {here['torch_threads']}, numba threads {here['numba_threads']}, "
-            f"GPU {here['gpu']}; commit {git_commit()}")
+            f"GPU {here['gpu']}; commit {commit}")

@@ -117,8 +117,8 @@ def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, lo
     log("fwd, fwd+bwd: a whole rasterize() call (projection in torch autograd + compositing).")
     log("composite: binning + compositing forward + backward alone, on fixed projections: the part the kernel implements.")
     log("Times are medians of interleaved repetitions; peak MB is the RSS growth of one fwd+bwd in a fresh process.")
-    here = machine()
-    log(f"{machine_line(here)}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+    here, commit = machine(), git_commit()
+    log(f"{machine_line(here, commit)}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     header = (f"{'case':<5}{'N':>8}{'px':>6}{'pairs':>12}{'backend':>9}{'fwd ms':>9}{'fwd+bwd ms':>12}"
               f"{'composite ms':>14}{'peak MB':>9}")
     log(header)
@@ -161,7 +161,7 @@ def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, lo
 
     scaling = _scaling(config, rows, log)
     sweep = _feature_sweep(config, log)
-    result = {"config": asdict(config), "git_commit": git_commit(), "machine": here, "rows": rows, "scaling": scaling,
+    result = {"config": asdict(config), "git_commit": commit, "machine": here, "rows": rows, "scaling": scaling,
               "feature_sweep": sweep}
     if out_path is not None:
         out_path.parent.mkdir(parents=True, exist_ok=True)

@@ -87,12 +87,12 @@ def run_step_bench(
             "projected_minutes": trainer.config.optim.iterations / max(summary["iterations_per_second"], 1e-9) / 60.0,
             "projected_iterations": trainer.config.optim.iterations,
         }
-    here = machine()
+    here, commit = machine(), git_commit()
     log(format_step_table(results, f"{scene.name} {scene.train[0].width}x{scene.train[0].height}"))
-    log(f"  {machine_line(here)}")
+    log(f"  {machine_line(here, commit)}")
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"git_commit": git_commit(), "machine": here, "variants": results}, indent=2))
+        out.write_text(json.dumps({"git_commit": commit, "machine": here, "variants": results}, indent=2))
     return results
 
 

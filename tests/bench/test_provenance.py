@@ -32,5 +32,5 @@ def test_machine_agrees_with_the_kernel_s_view_of_the_cpu():
     expected = "avx512f" if "avx512f" in flags else "avx2" if "avx2" in flags else "avx"
     assert here["vector_isa"] == expected
     assert here["cpu_model"] and here["cpu_target"] and here["cpus"] >= 1 and here["numba_threads"] >= 1
-    line = machine_line(here)
-    assert here["cpu_model"] in line and here["cpu_target"] in line and expected in line
+    line = machine_line(here, "abc123+dirty")
+    assert here["cpu_model"] in line and here["cpu_target"] in line and expected in line and "abc123+dirty" in line
