@@ -95,7 +95,8 @@ def evaluate_motion_and_save(
     run's flow settings) the training pairs' flow target is scored too, from ``flow_cache`` or else the scene's
     optical-flow cache (computed where missing)."""
     truth = truth if truth is not None else read_motion_gt(scene.root)
-    evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius)
+    integration = flow.velocity_integration if flow is not None else "euler"
+    evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius, velocity_integration=integration)
     if flow is not None:
         cache = flow_cache or open_flow_cache(scene, flow, Path(run_dir) / "flow_cache", progress=False)
         evaluation.target = evaluate_flow_target(model, cache, flow, truth)

@@ -7,7 +7,9 @@ flow's ``next_time`` (t + the dataset's ``frame_interval``; one training-frame i
   composited with the colour weights (:func:`pidg.data.motion_gt.composited_flow`, the definition the ground
   truth is made with);
 * *velocity flow* (runs with a material field): each centre's projected displacement by v (converted from the
-  field's physics time to dataset time by the model's :class:`TimeAxis`) times (t' - t);
+  field's physics time to dataset time by the model's :class:`TimeAxis`) times (t' - t), v taken by the run's
+  ``FlowConfig.velocity_integration`` (:func:`pidg.flow.interval_velocity`: the paper's v(x, t), or the midpoint
+  rule's v at the end of a half step);
 * *Gaussian flow*: the affine flow LPFM trains (:mod:`pidg.flow.gaussian_flow`), in the JSON only.
 
 End-point error (EPE) = mean |flow - flow_gt| in pixels over the *scored pixels*: ground-truth dynamic, a surface in
@@ -28,7 +30,8 @@ seen by that camera constrains only the part across its rays, so on the training
 2D flow matching cannot teach. And the first-order floor of the velocity flow: the true velocity's own flow,
 x + v_gt(t) (t' - t) projected, against the true displacement x(t') (mean pixels over every vertex in front of the
 frame's camera at the times that have a sample at t' too); a curved path makes it non-zero, and no learned v can
-go below it by that definition.
+go below it by that definition. Beside it the same with the trapezoid (v_gt(t) + v_gt(t')) / 2, a second-order
+step like ``--flow.velocity_integration midpoint``'s: what is left of that floor with a second-order rule.
 
 **3D tracking (identity over the recording).** At each scored frame's time that has a vertex sample (the anchor),
 every vertex is matched to its nearest Gaussian as above; those Gaussians are then followed through every other
@@ -59,7 +62,7 @@ from torch import Tensor
 from pidg.data.motion_gt import MotionGroundTruth, composited_flow, projected_displacement, resize_flow
 from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.charts import svg_chart
-from pidg.flow import FlowCache, FlowConfig, FlowTarget, model_flow_target
+from pidg.flow import FlowCache, FlowConfig, FlowTarget, VelocityIntegration, interval_velocity, model_flow_target
 from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.time_axis import TimeAxis
@@ -92,6 +95,7 @@ class FlowScores:
     gaussian_flow_epe: float | None
     zero_motion_epe: float | None  # mean |flow_gt| on the scored pixels
     skipped: list[str] = field(default_factory=list)  # frames whose t + frame_interval lies after the recording
+    velocity_integration: VelocityIntegration = "euler"  # how the velocity flow carried the particles over t' - t
 
 
 @dataclass
@@ -125,6 +129,8 @@ class VelocityScores:
     zero_along_ray: float | None = None
     zero_across_ray: float | None = None
     truth_velocity_flow_px: float | None = None  # the true velocity's first-order flow vs the true displacement (px)
+    # the same with the trapezoid of the true velocities at t and t' (second order, as the midpoint rule)
+    truth_velocity_flow_second_order_px: float | None = None
 
 
 @dataclass
@@ -193,15 +199,17 @@ class MotionEvaluation:
     def summary(self) -> str:
         """One line: the flow EPEs against zero motion, and the 3D velocity errors against zero velocity."""
         f, v = self.flow, self.velocity
+        rule = "" if f.velocity_integration == "euler" else f" ({f.velocity_integration} rule)"
         return (
             f"motion vs ground truth ({self.split}, {f.frames} frames, {f.pixels} px): motion-flow EPE {_px(f.motion_flow_epe)}, "
-            f"velocity-flow EPE {_px(f.velocity_flow_epe)}, zero motion {_px(f.zero_motion_epe)}; 3D velocity "
+            f"velocity-flow EPE {_px(f.velocity_flow_epe)}{rule}, zero motion {_px(f.zero_motion_epe)}; 3D velocity "
             f"(coverage {_pct(v.coverage)} within {v.radius:.3g} world units): relative error deformation {_num(v.deformation_rel)}, "
             f"field v {_num(v.field_rel)}, zero {_num(v.zero_rel)}; along / across the camera rays (world units per "
             f"unit of dataset time): deformation "
             f"{_num(v.deformation_along_ray)} / {_num(v.deformation_across_ray)}, field v {_num(v.field_along_ray)} / "
             f"{_num(v.field_across_ray)}, zero {_num(v.zero_along_ray)} / {_num(v.zero_across_ray)}; the true "
-            f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} from the true displacement"
+            f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} (second order "
+            f"{_px(v.truth_velocity_flow_second_order_px)}) from the true displacement"
             + ("" if self.tracking is None else f"; {_tracking_text(self.tracking)}")
             + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
                f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
@@ -282,9 +290,12 @@ class ModelFlows:
 
 
 @torch.no_grad()
-def model_flows(model: DynamicGaussians, camera: Camera, t: float, t1: float) -> ModelFlows:
+def model_flows(
+    model: DynamicGaussians, camera: Camera, t: float, t1: float, integration: VelocityIntegration = "euler"
+) -> ModelFlows:
     """The model's motion, velocity and Gaussian flows from dataset time t to t1 in ``camera`` (held fixed), in
-    one rasterizer pass: [Gaussian-flow channels | centre displacement | velocity displacement] as features."""
+    one rasterizer pass: [Gaussian-flow channels | centre displacement | velocity displacement] as features; the
+    velocity by ``integration`` (:func:`pidg.flow.interval_velocity`)."""
     state_t, state_t1 = model.at(t), model.at(t1)
     means = state_t.means
     channels = [
@@ -293,7 +304,7 @@ def model_flows(model: DynamicGaussians, camera: Camera, t: float, t1: float) ->
         projected_displacement(camera, means, state_t1.means),
     ]
     if model.material_field is not None:
-        v = velocity_per_dataset_time(model.velocities(t, means), model.time_axis)
+        v = velocity_per_dataset_time(interval_velocity(model, t, t1 - t, means, integration=integration), model.time_axis)
         channels.append(projected_displacement(camera, means, means + v * (t1 - t)))
     out = model.render_state(state_t, camera, torch.cat(channels, dim=-1))
     assert out.features is not None
@@ -392,12 +403,14 @@ def _velocity_at(model: DynamicGaussians, t: float, points: Tensor, radius: floa
 FLOW_KEYS = {"motion": "motion_flow_epe", "velocity": "velocity_flow_epe", "gaussian": "gaussian_flow_epe", "zero": "zero_motion_epe"}
 
 
-def _frame_flow_sums(model: DynamicGaussians, frame: Frame, flow: np.ndarray, dynamic: np.ndarray, t1: float) -> tuple[dict[str, float | None], int]:
+def _frame_flow_sums(
+    model: DynamicGaussians, frame: Frame, flow: np.ndarray, dynamic: np.ndarray, t1: float, integration: VelocityIntegration
+) -> tuple[dict[str, float | None], int]:
     """Sums of |flow - flow_gt| over one frame's scored pixels per flow (None: the model has no such flow), and
     their number."""
     flow_gt, dyn = resize_flow(torch.from_numpy(flow), torch.from_numpy(dynamic), (frame.width, frame.height))
     flow_gt, dyn = flow_gt.to(model.device), dyn.to(model.device)
-    flows = model_flows(model, frame.camera, frame.time, t1)
+    flows = model_flows(model, frame.camera, frame.time, t1, integration)
     mask = dyn & torch.isfinite(flow_gt).all(-1) & (flows.alpha > MODEL_MIN_ALPHA)
     sums = {"motion": _epe_sum(flows.motion, flow_gt, mask), "velocity": _epe_sum(flows.velocity, flow_gt, mask),
             "gaussian": _epe_sum(flows.gaussian, flow_gt, mask), "zero": float(flow_gt.norm(dim=-1)[mask].double().sum())}
@@ -413,13 +426,15 @@ def evaluate_motion(
     radius: float | None = None,
     fd_step: float | None = None,
     speed_floor: float | None = None,
+    velocity_integration: VelocityIntegration = "euler",
 ) -> MotionEvaluation:
     """Score the model's motion on ``frames`` against ``truth`` (see the module docstring for every definition).
 
     ``radius``: vertex-to-Gaussian matching radius in world units (default :func:`default_radius`); ``fd_step``:
     the deformation's central-difference step in dataset time (default half the ground-truth frame interval);
     ``speed_floor``: smallest true speed counted in the relative error, world units per unit of dataset time
-    (default :data:`SPEED_FLOOR_FRACTION` of the mean true speed at the scored times)."""
+    (default :data:`SPEED_FLOOR_FRACTION` of the mean true speed at the scored times); ``velocity_integration``: the
+    rule the velocity flow carries particles by, the run's ``FlowConfig.velocity_integration``."""
     if radius is not None and not radius > 0:
         raise ValueError(f"motion evaluation: the matching radius must be > 0 world units, got {radius}")
     radius = default_radius(truth) if radius is None else float(radius)
@@ -427,7 +442,8 @@ def evaluate_motion(
     sums = dict.fromkeys(FLOW_KEYS, 0.0)
     pixels, scored, skipped, per_frame = 0, 0, [], []
     gathered: dict[str, list[Tensor]] = {
-        "speed_all": [], "speed": [], "distance": [], "deformation": [], "field": [], "ray": [], "v_gt": [], "euler": []
+        "speed_all": [], "speed": [], "distance": [], "deformation": [], "field": [], "ray": [], "v_gt": [], "euler": [],
+        "second_order": [],
     }
     matches: dict[float, tuple[Tensor, Tensor]] = {}  # vertex sample time -> matched vertices, their Gaussians
     for frame in frames:
@@ -438,7 +454,7 @@ def evaluate_motion(
         if gt.next_time > 1.0 + _TIME_TOL:  # the model is not defined after its recording
             skipped.append(frame.name)
         else:
-            frame_sums, n = _frame_flow_sums(model, frame, gt.flow, gt.dynamic, gt.next_time)
+            frame_sums, n = _frame_flow_sums(model, frame, gt.flow, gt.dynamic, gt.next_time, velocity_integration)
             for key, total in frame_sums.items():
                 sums[key] += total or 0.0
                 record[FLOW_KEYS[key]] = total / n if total is not None and n else None
@@ -452,7 +468,8 @@ def evaluate_motion(
     def average(key: str) -> float | None:
         return sums[key] / pixels if pixels and (key != "velocity" or model.material_field is not None) else None
 
-    flow_scores = FlowScores(scored, pixels, average("motion"), average("velocity"), average("gaussian"), average("zero"), skipped)
+    flow_scores = FlowScores(scored, pixels, average("motion"), average("velocity"), average("gaussian"), average("zero"), skipped,
+                             velocity_integration)
     velocity = _velocity_scores(gathered, len(matches), radius, h, speed_floor, truth.frame_interval)
     tracking, per_anchor = _tracking_scores(model, truth, dict(sorted(matches.items())))
     for record in per_frame:
@@ -533,12 +550,15 @@ def _score_vertices(
     gathered["distance"].append(found["distance"])
     gathered["ray"].append(nn_functional.normalize(points[found["hit"]] - frame.camera.camera_center.to(points), dim=-1))
     gathered["v_gt"].append(v_gt[found["hit"]])
-    if _has_sample(truth, t + truth.frame_interval):  # the true velocity's own first-order flow over one interval
-        later = torch.from_numpy(truth.vertices.positions[truth.vertices.index_of(t + truth.frame_interval, _TIME_TOL)]).to(points)
+    if _has_sample(truth, t + truth.frame_interval):  # the true velocity's own flows over one interval
+        k1 = truth.vertices.index_of(t + truth.frame_interval, _TIME_TOL)
+        later = torch.from_numpy(truth.vertices.positions[k1]).to(points)
+        v_later = torch.from_numpy(truth.vertices.velocities[k1]).to(points)
         shown = projected_displacement(frame.camera, points, later)
-        advected = projected_displacement(frame.camera, points, points + v_gt * truth.frame_interval)
         ahead = frame.camera.project_points(points)[1] > frame.camera.near
-        gathered["euler"].append((advected - shown).norm(dim=-1)[ahead])
+        for key, v_step in (("euler", v_gt), ("second_order", 0.5 * (v_gt + v_later))):
+            advected = projected_displacement(frame.camera, points, points + v_step * truth.frame_interval)
+            gathered[key].append((advected - shown).norm(dim=-1)[ahead])
     record = {"coverage": float(found["hit"].float().mean()), "gt_speed": _mean(speed)}
     for key in ("deformation", "field"):
         err = found[key] - v_gt[found["hit"]] if key in found else None
@@ -590,5 +610,6 @@ def _velocity_scores(
         deformation_along_ray=d_ray[0], deformation_across_ray=d_ray[1], field_along_ray=f_ray[0],
         field_across_ray=f_ray[1], zero_along_ray=z_ray[0], zero_across_ray=z_ray[1],
         truth_velocity_flow_px=_mean(cat("euler")) if gathered["euler"] else None,
+        truth_velocity_flow_second_order_px=_mean(cat("second_order")) if gathered["second_order"] else None,
     )
 

@@ -1,6 +1,6 @@
 """Optical-flow supervision (LPFM): flow preprocessing, backward motion-flow decomposition, rendered Gaussian and
 velocity flow, and the loss. See NOTES.md sections 6-8 and the module docstrings for conventions."""
-from pidg.flow.config import FlowConfig
+from pidg.flow.config import FlowConfig, VelocityIntegration
 from pidg.flow.decomposition import (
     BackwardDecomposition,
     FlowTarget,
@@ -39,6 +39,7 @@ from pidg.flow.optical_flow import (
 from pidg.flow.model_flow import (
     flow_camera_t1,
     flow_channels,
+    interval_velocity,
     model_flow_target,
     render_pair_flows,
     rendered_depth,
@@ -52,6 +53,7 @@ __all__ = [
     "BackwardDecomposition",
     "FlowCache",
     "FlowConfig",
+    "VelocityIntegration",
     "FlowEstimatorUnavailable",
     "FlowPair",
     "FlowTarget",
@@ -68,6 +70,7 @@ __all__ = [
     "end_point_error",
     "flow_camera_t1",
     "flow_channels",
+    "interval_velocity",
     "flow_channel_count",
     "flow_features",
     "flow_target_for_pair",

@@ -14,6 +14,7 @@ FlowKind = Literal["none", "lpfm"]
 FlowTargetKind = Literal["motion", "total"]
 EstimatorName = Literal["dis", "deepflow", "tvl1", "raft"]
 DisPreset = Literal["ultrafast", "fast", "medium"]
+VelocityIntegration = Literal["euler", "midpoint"]
 
 
 @dataclass
@@ -39,6 +40,14 @@ class FlowConfig:
     the optical flow; ``pidg.flow.decomposition.depth_change_target``), in pixel-equivalents (fx / z x world units),
     matched by the Gaussians' and the advected velocities' composited depth changes. Needs the dataset's depth maps
     and the motion target."""
+    velocity_integration: VelocityIntegration = "euler"
+    """How the velocity flow carries a particle through the material field over a pair's interval dt. euler (the
+    paper): x + v(x, t) dt, first order. midpoint (an extension): x + v(x + v(x, t) dt / 2, t + dt / 2) dt, the
+    explicit midpoint rule, second order, for one more field evaluation per flow Gaussian. Where an object turns or
+    accelerates, the true velocity does not match a displacement to first order (on the generated kinematic scene its
+    first-order flow is 0.84 px from the true motion, its second-order one 0.04 px: README, issue 16), so a first-order
+    flow loss teaches v each interval's chord rather than the particles' velocity. Evaluation (``pidg eval
+    --motion-gt``) scores the velocity flow with the run's own rule."""
     start: Annotated[int, NON_NEGATIVE] = 0
     """First training step that uses LPFM (then every step)."""
     target: FlowTargetKind = "motion"

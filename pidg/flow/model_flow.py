@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from pidg.flow.config import FlowConfig
+from pidg.flow.config import FlowConfig, VelocityIntegration
 from pidg.flow.decomposition import FlowTarget
 from pidg.flow.gaussian_flow import (
     decode_depth_changes_at,
@@ -26,15 +26,34 @@ from pidg.render.api import project
 from pidg.render.footprint import footprints_touching
 
 
+def interval_velocity(
+    model: DynamicGaussians, t: float, dt: float, means: Tensor, rows: Tensor | None = None,
+    integration: VelocityIntegration = "euler",
+) -> Tensor:
+    """The constant velocity [N, 3] (world units per physics time unit) that carries each particle from ``means``
+    at dataset time t to where the material field moves it over ``dt`` (dataset time) by ``integration``
+    (``FlowConfig.velocity_integration``): euler, v(x, t); midpoint, v at the end of an Euler half step,
+    v(x + v(x, t) dt / 2, t + dt / 2), so that x + that x dt is the explicit midpoint rule. ``rows``: as in
+    :meth:`DynamicGaussians.velocities` (``means`` are then those Gaussians')."""
+    v = model.velocities(t, means, rows=rows)
+    if integration == "euler":
+        return v
+    if integration != "midpoint":
+        raise ValueError(f"velocity integration must be 'euler' or 'midpoint', got {integration!r}")
+    half_step = 0.5 * model.time_axis.to_physics(dt)
+    return model.velocities(t + 0.5 * dt, means + half_step * v, rows=rows)
+
+
 def flow_channels(
     model: DynamicGaussians, camera: Camera, state_t: DeformedGaussians, state_t1: DeformedGaussians, t: float, dt: float,
-    camera_t1: Camera | None = None,
+    camera_t1: Camera | None = None, integration: VelocityIntegration = "euler",
 ) -> Tensor:
     """Per-Gaussian flow channels [N, 8] ([N, 6] without a material field) for a render in ``camera`` (frame t's):
     the Gaussians at t and t+1 (``state_t``, ``state_t1``), and their velocities at t advected over ``dt`` (dataset
-    time, converted to the field's physics time units by the model's time axis). ``camera_t1``: None for the motion
-    flow (camera t at both times), frame t+1's camera for the total flow."""
-    v = model.velocities(t, state_t.means) if model.material_field is not None else None
+    time, converted to the field's physics time units by the model's time axis; by ``integration``, see
+    :func:`interval_velocity`). ``camera_t1``: None for the motion flow (camera t at both times), frame t+1's camera
+    for the total flow."""
+    v = interval_velocity(model, t, dt, state_t.means, integration=integration) if model.material_field is not None else None
     return gaussian_flow_features(
         camera, state_t.means, state_t.quats, state_t.log_scales.exp(), model.gaussians.opacities,
         state_t1.means, state_t1.quats, state_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
@@ -59,15 +78,18 @@ def supervised_flow_channels(
     deforming: bool = True,
     camera_t1: Camera | None = None,
     depth_change: bool = False,
+    integration: VelocityIntegration = "euler",
 ) -> Tensor:
     """:func:`flow_channels` [N, C] for a loss that reads the rendered flows only at ``supervised`` pixels [H, W]
     of camera t: rows of Gaussians whose footprint misses them all are zero (they add nothing there, see
     :mod:`pidg.render.footprint`), so the deformation to t+1 (``t1``), the velocities and the flow channels are
     computed, and differentiated, for the others only. The loss and its gradients are those of the full channels.
     ``deforming`` False (a static warm-up): the Gaussians at t+1 are the canonical ones. ``camera_t1``: as in
-    :func:`flow_channels`. ``depth_change``: with the depth-change channels (:mod:`pidg.flow.gaussian_flow`)."""
+    :func:`flow_channels`. ``depth_change``: with the depth-change channels (:mod:`pidg.flow.gaussian_flow`).
+    ``integration``: how the velocity flow carries the particles (:func:`interval_velocity`)."""
     n = state_t.means.shape[0]
-    channels = flow_channel_count(model.material_field is not None, depth_change)
+    velocity = model.material_field is not None
+    channels = flow_channel_count(velocity, depth_change)
     with torch.no_grad():
         g = model.gaussians
         proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera, model.backend)
@@ -82,7 +104,7 @@ def supervised_flow_channels(
     else:
         p = model.gaussians.params
         sub_t1 = DeformedGaussians(p["means"][rows], p["quats"][rows], p["log_scales"][rows])
-    v = model.velocities(t, sub_t.means, rows=rows) if model.material_field is not None else None
+    v = interval_velocity(model, t, dt, sub_t.means, rows, integration) if velocity else None
     sub = gaussian_flow_features(
         camera, sub_t.means, sub_t.quats, sub_t.log_scales.exp(), model.gaussians.opacities[rows],
         sub_t1.means, sub_t1.quats, sub_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
@@ -135,7 +157,8 @@ def render_pair_flows(model: DynamicGaussians, pair: FlowPair, config: FlowConfi
     total flows, as ``config.target``)."""
     state_t, state_t1 = model.at(pair.frame0.time), model.at(pair.frame1.time)
     camera = pair.frame0.camera
-    channels = flow_channels(model, camera, state_t, state_t1, pair.frame0.time, pair.dt, flow_camera_t1(pair, config))
+    channels = flow_channels(model, camera, state_t, state_t1, pair.frame0.time, pair.dt, flow_camera_t1(pair, config),
+                             config.velocity_integration)
     out = model.render_state(state_t, camera, channels)
     target, _ = model_flow_target(model, pair, state_t1, config)
     flow_g, flow_v, _ = decode_flows(out.features, out.alpha)

@@ -311,6 +311,7 @@ class FlowMatchingLoss(LossTerm):
         return supervised_flow_channels(
             inputs.model, inputs.frame.camera, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
             inputs.deforming, flow_camera_t1(pair, self.config), target.depth_change is not None,
+            integration=self.config.velocity_integration,
         )
 
     def feature_pixels(self) -> Tensor | None:

@@ -224,6 +224,31 @@ def test_a_wrong_field_velocity_shows_in_the_velocity_errors_only(tmp_path):
     assert bare.flow.velocity_flow_epe is None and bare.velocity.field_rel is None and bare.flow.motion_flow_epe is not None
 
 
+class HalfStepField(nn.Module):
+    """Still at dataset times in [k/8, k/8 + 1/32) and moving with VELOCITY (physics units) from k/8 + 1/32 on: the
+    test frames (t = 0.25, 0.5) are at rest, the midpoints of their intervals (t + DT/2) are not."""
+
+    def forward(self, means: Tensor, t, index: Tensor) -> tuple[Tensor, Tensor]:
+        t = torch.as_tensor(t, dtype=means.dtype).expand(len(means))
+        moving = ((t * 8.0) % 1.0 >= 0.25 - 1e-6).to(means.dtype)[:, None]
+        return moving * (VELOCITY / S).to(means), means.new_zeros(len(means), 6)
+
+
+def test_the_velocity_flow_uses_the_runs_integration_rule(tmp_path):
+    """euler reads v at t (here still: the velocity flow is zero motion's error); midpoint reads it half an
+    interval on (here the true motion: error 0), and the summary names the rule."""
+    truth, frames = write_truth(tmp_path)
+    model = plane_model(None)
+    model.material_field = HalfStepField()
+    euler = evaluate_motion(model, frames, truth)
+    midpoint = evaluate_motion(model, frames, truth, velocity_integration="midpoint")
+    assert euler.flow.velocity_flow_epe == pytest.approx(math.hypot(*EXPECTED_PX), rel=1e-4)
+    assert midpoint.flow.velocity_flow_epe == pytest.approx(0.0, abs=1e-4)
+    assert midpoint.flow.motion_flow_epe == euler.flow.motion_flow_epe  # the deformation's flows do not change
+    assert "(midpoint rule)" in midpoint.summary() and "rule" not in euler.summary().split("zero motion")[0]
+    assert midpoint.to_dict()["flow"]["velocity_integration"] == "midpoint"
+
+
 def test_velocity_errors_split_along_and_across_the_camera_rays(tmp_path):
     truth, frames = write_truth(tmp_path)
     depth_error = torch.tensor([0.0, 0.0, 0.5])  # v wrong along the camera's axis only (world units / dataset time)
@@ -244,11 +269,21 @@ def test_velocity_errors_split_along_and_across_the_camera_rays(tmp_path):
 def test_the_velocity_flow_floor_is_the_true_velocitys_own_first_order_error(tmp_path):
     # samples one frame interval apart, so the floor is defined at the first; positions move with VELOCITY
     exact, frames = write_truth(tmp_path / "exact", times=(0.25, 0.25 + DT))
-    assert evaluate_motion(plane_model(None), frames, exact).velocity.truth_velocity_flow_px == pytest.approx(0.0, abs=1e-5)
+    velocity = evaluate_motion(plane_model(None), frames, exact).velocity
+    assert velocity.truth_velocity_flow_px == pytest.approx(0.0, abs=1e-5)
+    assert velocity.truth_velocity_flow_second_order_px == pytest.approx(0.0, abs=1e-5)
     # a stated velocity of twice the motion: its flow overshoots by the true displacement (in-plane, constant depth)
     doubled, frames = write_truth(tmp_path / "doubled", times=(0.25, 0.25 + DT), v_gt=2 * VELOCITY)
-    floor = evaluate_motion(plane_model(None), frames, doubled).velocity.truth_velocity_flow_px
-    assert floor == pytest.approx(math.hypot(*EXPECTED_PX), rel=1e-4)
+    velocity = evaluate_motion(plane_model(None), frames, doubled).velocity
+    assert velocity.truth_velocity_flow_px == pytest.approx(math.hypot(*EXPECTED_PX), rel=1e-4)
+    assert velocity.truth_velocity_flow_second_order_px == pytest.approx(math.hypot(*EXPECTED_PX), rel=1e-4)
+    # accelerating from rest to twice the mean speed over the interval: first order sees no motion, the trapezoid all
+    accelerating, frames = write_truth(tmp_path / "accelerating", times=(0.25, 0.25 + DT))
+    accelerating.vertices.velocities = np.stack([0 * VELOCITY.numpy(), 2 * VELOCITY.numpy()])[:, None].repeat(
+        accelerating.vertices.positions.shape[1], axis=1)
+    velocity = evaluate_motion(plane_model(None), frames, accelerating).velocity
+    assert velocity.truth_velocity_flow_px == pytest.approx(math.hypot(*EXPECTED_PX), rel=1e-4)
+    assert velocity.truth_velocity_flow_second_order_px == pytest.approx(0.0, abs=1e-4)
     # no sample one interval later: no floor
     apart, frames = write_truth(tmp_path / "apart")  # samples at 0.25 and 0.5, 2 intervals apart
     assert evaluate_motion(plane_model(None), frames, apart).velocity.truth_velocity_flow_px is None

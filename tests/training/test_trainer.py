@@ -160,6 +160,25 @@ def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh,
         assert torch.allclose(p, resumed.model.gaussians.params[name], atol=1e-5, rtol=1e-4), name
 
 
+def test_the_midpoint_velocity_flow_reads_the_field_half_an_interval_on(scene, tmp_path):
+    """--flow.velocity_integration midpoint: the flow term evaluates the material field at each pair's t and again at
+    t + dt/2 (at the Euler half step's positions); euler only at training times."""
+    seen = {}
+    for rule in ("euler", "midpoint"):
+        cfg = physics_flow_config(tmp_path / rule, iterations=6)
+        cfg.flow = dataclasses.replace(cfg.flow, velocity_integration=rule)
+        trainer = Trainer(cfg, scene)
+        times = seen.setdefault(rule, set())
+        original = trainer.model.velocities
+        trainer.model.velocities = lambda t, *a, _times=times, _original=original, **k: _times.add(round(float(t), 6)) or _original(t, *a, **k)
+        trainer.train()
+        assert any(h.get("lpfm_epe_velocity") is not None for h in trainer.history)
+    frames = sorted(scene.train, key=lambda f: f.time)
+    halfway = {round(0.5 * (a.time + b.time), 6) for a, b in zip(frames, frames[1:])}
+    assert seen["euler"] <= {round(f.time, 6) for f in frames}
+    assert seen["midpoint"] & halfway and seen["midpoint"] - halfway <= {round(f.time, 6) for f in frames}
+
+
 def test_the_depth_change_term_trains_v_along_the_rays_where_the_data_has_depth(scene, rgbd_scene, tmp_path):
     cfg = physics_flow_config(tmp_path, iterations=8)
     cfg.flow = dataclasses.replace(cfg.flow, lambda_depth_change=1.0)
