@@ -41,9 +41,10 @@ class FlowConfig:
     matched by the Gaussians' and the advected velocities' composited depth changes. Needs the dataset's depth maps
     and the motion target."""
     velocity_integration: VelocityIntegration = "euler"
-    """How the velocity flow carries a particle through the material field over a pair's interval dt. euler (the
-    paper): x + v(x, t) dt, first order. midpoint (an extension): x + v(x + v(x, t) dt / 2, t + dt / 2) dt, the
-    explicit midpoint rule, second order, for one more field evaluation per flow Gaussian. Where an object turns or
+    """How the velocity flow carries a particle through the material field over a pair's interval dt (dataset time;
+    where it multiplies v, in the field's physics time units, ``TimeAxis.to_physics``). euler (the paper):
+    x + v(x, t) dt, first order. midpoint (an extension): x + v(x + v(x, t) dt / 2, t + dt / 2) dt, the explicit
+    midpoint rule, second order, for one more field evaluation per flow Gaussian. Where an object turns or
     accelerates, the true velocity does not match a displacement to first order (on the generated kinematic scene its
     first-order flow is 0.84 px from the true motion, its second-order one 0.04 px: README, issue 16), so a first-order
     flow loss teaches v each interval's chord rather than the particles' velocity. Evaluation (``pidg eval
