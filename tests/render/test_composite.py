@@ -129,6 +129,41 @@ def test_gradients_match_reference(dtype, tol, sh_degree):
         assert rel < tol, f"{name}: relative gradient error {rel:.2e}"
 
 
+def _kernel_and_reference_gradients(scene: GaussianScene, camera: Camera):
+    grads, outs = {}, {}
+    for backend in ("torch", "cpu"):
+        params = [t.detach().clone().requires_grad_(True) for t in scene.params()]
+        out = render(GaussianScene(*params), camera, backend, background=torch.tensor([0.4, 0.6, 0.2], dtype=torch.float64))
+        scalar_loss(out).backward()
+        grads[backend], outs[backend] = [p.grad for p in params], out
+    for name in ("rgb", "alpha", "depth", "features"):
+        assert (getattr(outs["torch"], name) - getattr(outs["cpu"], name)).abs().max() < 1e-5, name
+    names = ["means", "quats", "scales", "opacities", "colors", "features"]
+    for name, g_ref, g_cpu in zip(names, grads["torch"], grads["cpu"]):
+        rel = ((g_ref - g_cpu).norm() / g_ref.norm()).item()
+        assert g_ref.norm() > 0 and rel < 1e-5, f"{name}: relative gradient error {rel:.2e}"
+    return outs["torch"]
+
+
+def test_gradients_match_reference_where_pixels_saturate():
+    """A dense stack of near-opaque Gaussians: most pixels end their walk early (transmittance below 1e-4: the
+    kernel's per-lane stop and per-row early exit, forward and backward)."""
+    camera = orbit_camera(37, 29)  # partial tiles on both edges
+    scene = random_scene(300, camera, pixel_sigma=(4.0, 14.0), opacity=(0.9, 0.98), extent=0.3, n_features=3,
+                         dtype=torch.float64, seed=21)
+    ref = _kernel_and_reference_gradients(scene, camera)
+    # a pixel stops where the next Gaussian would take its transmittance below 1e-4: with alpha <= 0.99, T < 1e-2
+    assert (ref.alpha > 0.999).float().mean() > 0.3
+
+
+def test_gradients_match_reference_where_alpha_clamps():
+    """Large Gaussians of opacity above 0.99: around each centre alpha is clamped to 0.99 and passes no gradient."""
+    camera = orbit_camera(40, 32)
+    scene = random_scene(6, camera, pixel_sigma=(12.0, 18.0), opacity=(0.995, 0.999), extent=0.6, n_features=2,
+                         dtype=torch.float64, seed=4)
+    _kernel_and_reference_gradients(scene, camera)
+
+
 def test_reference_gradients_match_finite_differences():
     camera = CAMERAS["tall_offset"]()
     scene = random_scene(12, camera, pixel_sigma=(2.0, 6.0), opacity=(0.2, 0.9), n_features=2, dtype=torch.float64, seed=11)
