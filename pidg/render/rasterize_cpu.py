@@ -12,7 +12,7 @@ Pipeline, with no Python loop over Gaussians:
      ellipse must reach the row), and for each Gaussian that does, alpha is computed for all lanes with a
      branch-free polynomial exp, so the compiler vectorises the lane loop and no per-pixel branch is
      mispredicted. Each pixel stops once its transmittance would fall below 1e-4; the
-     row stops when all its pixels have. Per pixel it records the final transmittance and the end of its
+     row stops when all its pixels have (checked once per cull block). Per pixel it records the final transmittance and the end of its
      contributing prefix.
   3. ``_backward_tiles``: the same row/lane structure, back to front from that end, recovering each
      transmittance by division (alpha <= 0.99 keeps this stable). Gradients are summed per tile into one row
@@ -45,6 +45,7 @@ _LN2 = 0.6931471805599453
 # The backward may reassociate its lane sums (deterministic for a given build; no FMA contraction, so alpha is
 # recomputed bit for bit as in the forward pass and the hit tests agree)
 _REDUCE_FASTMATH = {"reassoc", "nsz"}
+_MAX_TILE_LIST = 1 << 24  # a pixel's end in its tile list is kept as a float32 lane value: exact below 2^24
 
 f32 = np.float32
 
@@ -538,6 +539,9 @@ def composite_cpu(
     """Same contract as ``composite_reference``: image [H, W, D] and alpha [H, W], differentiable; a tile composites
     only its ``tile_channels`` leading channels (and pays for those only)."""
     bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
+    if bins.tile_offsets.shape[0] > 1 and int(np.diff(bins.tile_offsets).max()) >= _MAX_TILE_LIST:
+        raise ValueError(f"composite_cpu: a tile holds {int(np.diff(bins.tile_offsets).max())} Gaussians; the kernel "
+                         f"counts a pixel's list position in float32, exact below {_MAX_TILE_LIST}")
     dim = features.shape[1]
     if tile_channels is None:
         tile_dims = np.full(bins.tiles_x * bins.tiles_y, dim, dtype=np.int64)

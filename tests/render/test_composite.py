@@ -268,3 +268,15 @@ def test_kernel_exp_matches_numpy_over_its_domain():
     k = np.arange(0, 9)
     at_powers = exp_all((-k * math.log(2.0)).astype(np.float32)).astype(np.float64)
     assert np.allclose(at_powers, 2.0 ** -k, rtol=5e-7, atol=0)
+
+
+def test_a_tile_list_too_long_for_the_kernel_is_named(monkeypatch):
+    """The kernel keeps a pixel's end in its tile's list as a float32 lane value (exact below 2^24): a longer list
+    is refused with one line instead of rounding silently (shown here with the limit lowered to 5)."""
+    import pidg.render.rasterize_cpu as rc
+
+    camera = orbit_camera(16, 16)
+    scene = random_scene(40, camera, pixel_sigma=(6.0, 8.0), extent=0.2, seed=1)
+    monkeypatch.setattr(rc, "_MAX_TILE_LIST", 5)
+    with pytest.raises(ValueError, match=r"composite_cpu: a tile holds \d+ Gaussians.*exact below 5"):
+        render(scene, camera, "cpu")
