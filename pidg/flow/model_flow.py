@@ -33,13 +33,14 @@ def interval_velocity(
     """The constant velocity [N, 3] (world units per physics time unit) that carries each particle from ``means``
     at dataset time t to where the material field moves it over ``dt`` (dataset time) by ``integration``
     (``FlowConfig.velocity_integration``): euler, v(x, t); midpoint, v at the end of an Euler half step,
-    v(x + v(x, t) dt / 2, t + dt / 2), so that x + that x dt is the explicit midpoint rule. ``rows``: as in
-    :meth:`DynamicGaussians.velocities` (``means`` are then those Gaussians')."""
+    v(x + v(x, t) dt / 2, t + dt / 2), so that x + (that velocity) * dt is the explicit midpoint rule (dt in physics
+    time there, ``TimeAxis.to_physics``). ``rows``: as in :meth:`DynamicGaussians.velocities` (``means`` are then
+    those Gaussians')."""
+    if integration not in ("euler", "midpoint"):
+        raise ValueError(f"velocity integration must be 'euler' or 'midpoint', got {integration!r}")
     v = model.velocities(t, means, rows=rows)
     if integration == "euler":
         return v
-    if integration != "midpoint":
-        raise ValueError(f"velocity integration must be 'euler' or 'midpoint', got {integration!r}")
     half_step = 0.5 * model.time_axis.to_physics(dt)
     return model.velocities(t + 0.5 * dt, means + half_step * v, rows=rows)
 
@@ -88,8 +89,8 @@ def supervised_flow_channels(
     :func:`flow_channels`. ``depth_change``: with the depth-change channels (:mod:`pidg.flow.gaussian_flow`).
     ``integration``: how the velocity flow carries the particles (:func:`interval_velocity`)."""
     n = state_t.means.shape[0]
-    velocity = model.material_field is not None
-    channels = flow_channel_count(velocity, depth_change)
+    has_field = model.material_field is not None
+    channels = flow_channel_count(has_field, depth_change)
     with torch.no_grad():
         g = model.gaussians
         proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera, model.backend)
@@ -104,7 +105,7 @@ def supervised_flow_channels(
     else:
         p = model.gaussians.params
         sub_t1 = DeformedGaussians(p["means"][rows], p["quats"][rows], p["log_scales"][rows])
-    v = interval_velocity(model, t, dt, sub_t.means, rows, integration) if velocity else None
+    v = interval_velocity(model, t, dt, sub_t.means, rows, integration) if has_field else None
     sub = gaussian_flow_features(
         camera, sub_t.means, sub_t.quats, sub_t.log_scales.exp(), model.gaussians.opacities[rows],
         sub_t1.means, sub_t1.quats, sub_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,

@@ -539,9 +539,10 @@ def composite_cpu(
     """Same contract as ``composite_reference``: image [H, W, D] and alpha [H, W], differentiable; a tile composites
     only its ``tile_channels`` leading channels (and pays for those only)."""
     bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
-    if bins.tile_offsets.shape[0] > 1 and int(np.diff(bins.tile_offsets).max()) >= _MAX_TILE_LIST:
-        raise ValueError(f"composite_cpu: a tile holds {int(np.diff(bins.tile_offsets).max())} Gaussians; the kernel "
-                         f"counts a pixel's list position in float32, exact below {_MAX_TILE_LIST}")
+    longest = int(np.diff(bins.tile_offsets).max()) if bins.tile_offsets.shape[0] > 1 else 0
+    if longest >= _MAX_TILE_LIST:
+        raise ValueError(f"composite_cpu: a tile holds {longest} Gaussians; the kernel counts a pixel's list position "
+                         f"in float32, exact below {_MAX_TILE_LIST}")
     dim = features.shape[1]
     if tile_channels is None:
         tile_dims = np.full(bins.tiles_x * bins.tiles_y, dim, dtype=np.int64)
