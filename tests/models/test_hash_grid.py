@@ -107,10 +107,12 @@ def test_kernel_matches_reference(config):
     assert outside.any() and (gc_k[outside] == 0).all() and (gc_r[outside] == 0).all()
 
 
-def test_kernel_backward_reads_a_column_block_of_a_wider_gradient():
-    """Features concatenated with others get a strided gradient (a column block); the kernel reads it in place."""
-    grid = random_grid(MIXED)
-    pts = hard_points(MIXED, 300)
+@pytest.mark.parametrize("config", [MIXED, GRID4D_TEMPORAL], ids=["three_features", "two_features"])
+def test_kernel_backward_reads_a_column_block_of_a_wider_gradient(config):
+    """Features concatenated with others get a strided gradient (a column block); the kernel reads it in place
+    (both of the table gradient's paths: two features per level, and any other count)."""
+    grid = random_grid(config)
+    pts = hard_points(config, 300)
     gen = torch.Generator().manual_seed(4)
     upstream = torch.randn(pts.shape[0], 3 * grid.out_dim, generator=gen)
     grads = []

@@ -233,6 +233,39 @@ def _block_rows(cell, sizes, lvl, offset, is_hashed, mask, n_feat, rows):  # pra
             rows[7, k] = np.uint64(r + sxy + sx + n_feat)
 
 
+@njit(cache=True, inline="always")
+def _gather_level(flat, frac, rows, n_feat, acc):  # pragma: no cover - compiled
+    """acc [F, LANES]: the trilinear blend of the 8 corner rows' features of a block of points (one level)."""
+    for f in range(n_feat):
+        fu = np.uint64(f)
+        for k in range(LANES):  # blend along x, then y, then z
+            w0, w1, w2 = frac[0, k], frac[1, k], frac[2, k]
+            v0, v1, v2 = np.float32(1.0) - w0, np.float32(1.0) - w1, np.float32(1.0) - w2
+            x00 = v0 * flat[rows[0, k] + fu] + w0 * flat[rows[1, k] + fu]
+            x10 = v0 * flat[rows[2, k] + fu] + w0 * flat[rows[3, k] + fu]
+            x01 = v0 * flat[rows[4, k] + fu] + w0 * flat[rows[5, k] + fu]
+            x11 = v0 * flat[rows[6, k] + fu] + w0 * flat[rows[7, k] + fu]
+            acc[f, k] = v2 * (v1 * x00 + w1 * x10) + w2 * (v1 * x01 + w1 * x11)
+
+
+@njit(cache=True, inline="always")
+def _scatter_level(flat, grad_out, start, cnt, col0, rows, corner_w, n_feat):  # pragma: no cover - compiled
+    """Add the block's incoming gradients (columns col0 .. col0 + F of grad_out) times the corner weights into
+    the corner rows, point by point and corner by corner, a corner's F features together (one cache line)."""
+    for k in range(cnt):
+        for f in range(n_feat):
+            g, fu = grad_out[start + k, col0 + f], np.uint64(f)
+            for j in range(8):
+                flat[rows[j, k] + fu] += corner_w[j, k] * g
+
+
+# Grid4D's grids have two features per level. The kernels call the inlined level functions above once with the
+# literal 2 and once with the runtime count, so that the common case is compiled with the count as a constant
+# (unrolled feature loops, a shift for the row stride): forward 1.15-1.2x and table gradient 1.3-1.5x faster on
+# a trained bouncingballs model's points (measured; the backward's gain is also from adding a corner's features
+# together instead of one feature over all corners at a time).
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _encode_forward(u, table, scales, sizes, offsets, hashed, table_size, out):  # pragma: no cover - compiled
     """u [3, N] (clamped), table [R, F] -> out [N, L * F]. One task per chunk of points, all levels."""
@@ -249,17 +282,12 @@ def _encode_forward(u, table, scales, sizes, offsets, hashed, table_size, out): 
         for start in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK), LANES):
             for lvl in range(n_levels):
                 _block_cells(u, start, n, scales, sizes, lvl, cell, frac)
-                _block_rows(cell, sizes, lvl, offsets[lvl], hashed[lvl], mask, n_feat, rows)
-                for f in range(n_feat):
-                    fu = np.uint64(f)
-                    for k in range(LANES):  # blend along x, then y, then z
-                        w0, w1, w2 = frac[0, k], frac[1, k], frac[2, k]
-                        v0, v1, v2 = np.float32(1.0) - w0, np.float32(1.0) - w1, np.float32(1.0) - w2
-                        x00 = v0 * flat[rows[0, k] + fu] + w0 * flat[rows[1, k] + fu]
-                        x10 = v0 * flat[rows[2, k] + fu] + w0 * flat[rows[3, k] + fu]
-                        x01 = v0 * flat[rows[4, k] + fu] + w0 * flat[rows[5, k] + fu]
-                        x11 = v0 * flat[rows[6, k] + fu] + w0 * flat[rows[7, k] + fu]
-                        acc[f, k] = v2 * (v1 * x00 + w1 * x10) + w2 * (v1 * x01 + w1 * x11)
+                if n_feat == 2:
+                    _block_rows(cell, sizes, lvl, offsets[lvl], hashed[lvl], mask, 2, rows)
+                    _gather_level(flat, frac, rows, 2, acc)
+                else:
+                    _block_rows(cell, sizes, lvl, offsets[lvl], hashed[lvl], mask, n_feat, rows)
+                    _gather_level(flat, frac, rows, n_feat, acc)
                 for k in range(min(LANES, n - start)):
                     for f in range(n_feat):
                         out[start + k, lvl * n_feat + f] = acc[f, k]
@@ -278,32 +306,29 @@ def _encode_backward_table(u, grad_out, scales, sizes, offsets, hashed, table_si
         cell = np.empty((3, LANES), dtype=np.int64)
         frac = np.empty((3, LANES), dtype=np.float32)
         rows = np.empty((8, LANES), dtype=np.uint64)
-        wg = np.empty((8, LANES), dtype=np.float32)
+        corner_w = np.empty((8, LANES), dtype=np.float32)
         off = offsets[lvl]
+        col0 = lvl * n_feat
         for start in range(0, n, LANES):
             _block_cells(u, start, n, scales, sizes, lvl, cell, frac)
-            _block_rows(cell, sizes, lvl, off, hashed[lvl], mask, n_feat, rows)
             cnt = min(LANES, n - start)
-            for f in range(n_feat):
-                col = lvl * n_feat + f
-                for k in range(LANES):  # corner weight x incoming gradient; padded lanes get 0
-                    g = grad_out[min(start + k, n - 1), col] if k < cnt else np.float32(0.0)
-                    w0, w1, w2 = frac[0, k], frac[1, k], frac[2, k]
-                    v0, v1, v2 = np.float32(1.0) - w0, np.float32(1.0) - w1, np.float32(1.0) - w2
-                    g0, g1 = v2 * g, w2 * g
-                    g00, g10, g01, g11 = v1 * g0, w1 * g0, v1 * g1, w1 * g1
-                    wg[0, k] = v0 * g00
-                    wg[1, k] = w0 * g00
-                    wg[2, k] = v0 * g10
-                    wg[3, k] = w0 * g10
-                    wg[4, k] = v0 * g01
-                    wg[5, k] = w0 * g01
-                    wg[6, k] = v0 * g11
-                    wg[7, k] = w0 * g11
-                fu = np.uint64(f)
-                for k in range(cnt):
-                    for j in range(8):
-                        flat[rows[j, k] + fu] += wg[j, k]
+            for k in range(LANES):  # trilinear corner weights, corner j = (x, y, z) = bits of j
+                w0, w1, w2 = frac[0, k], frac[1, k], frac[2, k]
+                v0, v1, v2 = np.float32(1.0) - w0, np.float32(1.0) - w1, np.float32(1.0) - w2
+                corner_w[0, k] = v0 * v1 * v2
+                corner_w[1, k] = w0 * v1 * v2
+                corner_w[2, k] = v0 * w1 * v2
+                corner_w[3, k] = w0 * w1 * v2
+                corner_w[4, k] = v0 * v1 * w2
+                corner_w[5, k] = w0 * v1 * w2
+                corner_w[6, k] = v0 * w1 * w2
+                corner_w[7, k] = w0 * w1 * w2
+            if n_feat == 2:
+                _block_rows(cell, sizes, lvl, off, hashed[lvl], mask, 2, rows)
+                _scatter_level(flat, grad_out, start, cnt, col0, rows, corner_w, 2)
+            else:
+                _block_rows(cell, sizes, lvl, off, hashed[lvl], mask, n_feat, rows)
+                _scatter_level(flat, grad_out, start, cnt, col0, rows, corner_w, n_feat)
 
 
 @njit(parallel=True, cache=True, nogil=True)
