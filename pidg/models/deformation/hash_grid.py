@@ -261,9 +261,9 @@ def _scatter_level(flat, grad_out, start, cnt, col0, rows, corner_w, n_feat):  #
 
 # Grid4D's grids have two features per level. The kernels call the inlined level functions above once with the
 # literal 2 and once with the runtime count, so that the common case is compiled with the count as a constant
-# (unrolled feature loops, a shift for the row stride): forward 1.15-1.2x and table gradient 1.3-1.5x faster on
-# a trained bouncingballs model's points (measured; the backward's gain is also from adding a corner's features
-# together instead of one feature over all corners at a time).
+# (unrolled feature loops, a shift for the row stride): forward 1.11-1.14x and table gradient 1.23-1.30x faster
+# on a trained bouncingballs model's points (measured against the one-feature-at-a-time kernels; the backward's gain
+# is also from adding a corner's features together instead of one feature over all corners and then the next).
 
 
 @njit(parallel=True, cache=True, nogil=True)
