@@ -115,33 +115,37 @@ def test_gradients_match_reference(dtype, tol, sh_degree):
         gen = torch.Generator().manual_seed(9)
         scene.colors = (0.3 * torch.randn(scene.means.shape[0], 16, 3, generator=gen)).to(dtype)
     bg = torch.tensor([0.3, 0.3, 0.3], dtype=dtype)
-    grads = {}
+    grads, _ = _gradients_by_backend(scene, camera, sh_degree=sh_degree, background=bg)
+    _assert_gradients_match(grads, tol)
+
+
+_GRADIENT_NAMES = ["means", "quats", "scales", "opacities", "colors", "features", "means2d"]
+
+
+def _gradients_by_backend(scene: GaussianScene, camera: Camera, **render_options) -> tuple[dict, dict]:
+    """Gradients of ``scalar_loss`` w.r.t. the scene's parameters and the projected means (``_GRADIENT_NAMES``), and
+    the renders, of the torch reference and the kernel (keys "torch", "cpu")."""
+    grads, outs = {}, {}
     for backend in ("torch", "cpu"):
         params = [t.detach().clone().requires_grad_(True) for t in scene.params()]
-        s = GaussianScene(*params)
-        out = render(s, camera, backend, sh_degree=sh_degree, background=bg)
+        out = render(GaussianScene(*params), camera, backend, **render_options)
         scalar_loss(out).backward()
-        grads[backend] = [p.grad for p in params] + [out.means2d.grad]
-    names = ["means", "quats", "scales", "opacities", "colors", "features", "means2d"]
-    for name, g_ref, g_cpu in zip(names, grads["torch"], grads["cpu"]):
+        grads[backend], outs[backend] = [p.grad for p in params] + [out.means2d.grad], out
+    return grads, outs
+
+
+def _assert_gradients_match(grads: dict, tol: float) -> None:
+    for name, g_ref, g_cpu in zip(_GRADIENT_NAMES, grads["torch"], grads["cpu"]):
         rel = ((g_ref - g_cpu).norm() / g_ref.norm()).item()
         assert g_ref.norm() > 0, name
         assert rel < tol, f"{name}: relative gradient error {rel:.2e}"
 
 
 def _kernel_and_reference_gradients(scene: GaussianScene, camera: Camera):
-    grads, outs = {}, {}
-    for backend in ("torch", "cpu"):
-        params = [t.detach().clone().requires_grad_(True) for t in scene.params()]
-        out = render(GaussianScene(*params), camera, backend, background=torch.tensor([0.4, 0.6, 0.2], dtype=torch.float64))
-        scalar_loss(out).backward()
-        grads[backend], outs[backend] = [p.grad for p in params], out
+    grads, outs = _gradients_by_backend(scene, camera, background=torch.tensor([0.4, 0.6, 0.2], dtype=torch.float64))
     for name in ("rgb", "alpha", "depth", "features"):
         assert (getattr(outs["torch"], name) - getattr(outs["cpu"], name)).abs().max() < 1e-5, name
-    names = ["means", "quats", "scales", "opacities", "colors", "features"]
-    for name, g_ref, g_cpu in zip(names, grads["torch"], grads["cpu"]):
-        rel = ((g_ref - g_cpu).norm() / g_ref.norm()).item()
-        assert g_ref.norm() > 0 and rel < 1e-5, f"{name}: relative gradient error {rel:.2e}"
+    _assert_gradients_match(grads, 1e-5)
     return outs["torch"]
 
 
