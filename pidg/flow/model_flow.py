@@ -98,16 +98,17 @@ def supervised_flow_channels(
     out = state_t.means.new_zeros(n, channels)
     if rows.numel() == 0:
         return out
-    invariant = None if state_t.invariant is None else state_t.invariant[rows]
-    sub_t = DeformedGaussians(state_t.means[rows], state_t.quats[rows], state_t.log_scales[rows], invariant=invariant)
+    invariant = None if state_t.invariant is None else state_t.invariant.index_select(0, rows)
+    sub_t = DeformedGaussians(*(x.index_select(0, rows) for x in (state_t.means, state_t.quats, state_t.log_scales)),
+                              invariant=invariant)
     if deforming:
         sub_t1 = model.at(t1, rows=rows, reuse=sub_t)
     else:
         p = model.gaussians.params
-        sub_t1 = DeformedGaussians(p["means"][rows], p["quats"][rows], p["log_scales"][rows])
+        sub_t1 = DeformedGaussians(*(p[name].index_select(0, rows) for name in ("means", "quats", "log_scales")))
     v = interval_velocity(model, t, dt, sub_t.means, rows, integration) if has_field else None
     sub = gaussian_flow_features(
-        camera, sub_t.means, sub_t.quats, sub_t.log_scales.exp(), model.gaussians.opacities[rows],
+        camera, sub_t.means, sub_t.quats, sub_t.log_scales.exp(), model.gaussians.opacities.index_select(0, rows),
         sub_t1.means, sub_t1.quats, sub_t1.log_scales.exp(), v, model.time_axis.to_physics(dt), camera_t1,
         model.backend, depth_change,
     )

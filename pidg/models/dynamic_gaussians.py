@@ -151,8 +151,8 @@ class DynamicGaussians:
         dynamic = self.dynamic_mask
         static = None if dynamic is None else ~dynamic
         if rows is not None:
-            means, quats, log_scales = means[rows], quats[rows], log_scales[rows]
-            static = None if static is None else static[rows]
+            means, quats, log_scales = (x.index_select(0, rows) for x in (means, quats, log_scales))
+            static = None if static is None else static.index_select(0, rows)
         invariant = None if reuse is None else reuse.invariant
         return self.deformation(means, quats, log_scales, t, static_mask=static, regularize=regularize, invariant=invariant)
 

@@ -179,8 +179,10 @@ class DeformationModel(nn.Module, ABC):
             return self._deform(means, quats, log_scales, times, regularize, invariant)
         if rows.numel() == 0:
             return DeformedGaussians(means, quats, log_scales)
-        moved = self._deform(means[rows], quats[rows], log_scales[rows], times[rows], regularize,
-                             None if invariant is None else invariant[rows])
+        # index_select rather than x[rows]: its backward (index_add) is ~3x faster on the CPU for the invariant's
+        # 64-wide rows than advanced indexing's (index_put with accumulate)
+        moved = self._deform(*(x.index_select(0, rows) for x in (means, quats, log_scales, times)), regularize,
+                             None if invariant is None else invariant.index_select(0, rows))
         kept = moved.invariant
         return DeformedGaussians(
             means.index_copy(0, rows, moved.means.to(means.dtype)),
