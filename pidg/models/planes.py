@@ -99,39 +99,58 @@ def _lookup_forward(planes, pa, pb, value, d_pa, d_pb, derivatives):  # pragma: 
                         d_pb[i, k, c] = (v01 - v00) * ga + (v11 - v10) * fa
 
 
-_BACKWARD_TASKS = 16  # particle blocks of the backward pass: fixed, so the sums' order does not depend on the threads
+_MAX_BACKWARD_TASKS = 16  # particle blocks of the backward pass, each with its own copy of the table gradient
+_PARTICLES_PER_TASK = 512  # fewer particles share a block: zeroing and summing the copies would cost more than the work
+
+
+def backward_tasks(m: int) -> int:
+    """Particle blocks of the backward pass for ``m`` particles: a function of m alone, so that the order of the
+    table gradient's sums (and its rounding) does not depend on the number of threads."""
+    return max(1, min(_MAX_BACKWARD_TASKS, m // _PARTICLES_PER_TASK))
 
 
 @njit(parallel=True, cache=True, nogil=True)
 def _lookup_backward(planes, pa, pb, g_value, g_da, g_db, partial, grad_pa, grad_pb):  # pragma: no cover - compiled
-    """Incoming gradients [M, K, C] (zeros for an output nobody used) -> each particle block's table gradient
-    ``partial`` [T, K, Ra, Rb, C] (zeroed by the caller; the planes are small, so every block owns a copy and their
-    sum is the gradient) and grad_pa, grad_pb [M, K] (empty arrays: not wanted)."""
+    """Incoming gradients [M, K, C] -> each particle block's table gradient ``partial`` [T, K, Ra, Rb, C] (zeroed
+    by the caller; the planes are small, so every block owns a copy and their sum is the gradient) and grad_pa,
+    grad_pb [M, K] (empty arrays: not wanted). ``g_da`` and ``g_db`` are empty [0, 0, 0] when the lookup had no
+    derivative outputs (or nobody used them): their terms are skipped, not multiplied by zeros."""
     n_planes, ra, rb, n_ch = planes.shape
     m = pa.shape[0]
     n_tasks = partial.shape[0]
     coords = grad_pa.shape[0] > 0
+    slopes = g_da.shape[0] > 0
     per_task = (m + n_tasks - 1) // n_tasks
     for task in prange(n_tasks):
         grad = partial[task]
         for i in range(task * per_task, min(m, (task + 1) * per_task)):
             for k in range(n_planes):
                 ia, ib, fa, fb, ga, gb = _corners(pa, pb, i, k, ra, rb)
+                w00, w01, w10, w11 = ga * gb, ga * fb, fa * gb, fa * fb
+                sa, sb = f32(0.0), f32(0.0)
                 for c in range(n_ch):
-                    gv, a, b = g_value[i, k, c], g_da[i, k, c], g_db[i, k, c]
-                    grad[k, ia, ib, c] += gv * ga * gb - a * gb - b * ga
-                    grad[k, ia, ib + 1, c] += gv * ga * fb - a * fb + b * ga
-                    grad[k, ia + 1, ib, c] += gv * fa * gb + a * gb - b * fa
-                    grad[k, ia + 1, ib + 1, c] += gv * fa * fb + a * fb + b * fa
-                if coords:
-                    sa, sb = f32(0.0), f32(0.0)
-                    for c in range(n_ch):
-                        gv, a, b = g_value[i, k, c], g_da[i, k, c], g_db[i, k, c]
+                    gv = g_value[i, k, c]
+                    g00, g01, g10, g11 = gv * w00, gv * w01, gv * w10, gv * w11
+                    if slopes:
+                        a, b = g_da[i, k, c], g_db[i, k, c]
+                        g00 += -a * gb - b * ga
+                        g01 += -a * fb + b * ga
+                        g10 += a * gb - b * fa
+                        g11 += a * fb + b * fa
+                    grad[k, ia, ib, c] += g00
+                    grad[k, ia, ib + 1, c] += g01
+                    grad[k, ia + 1, ib, c] += g10
+                    grad[k, ia + 1, ib + 1, c] += g11
+                    if coords:
                         v00, v01 = planes[k, ia, ib, c], planes[k, ia, ib + 1, c]
                         v10, v11 = planes[k, ia + 1, ib, c], planes[k, ia + 1, ib + 1, c]
-                        cross = v11 - v10 - v01 + v00
-                        sa += gv * ((v10 - v00) * gb + (v11 - v01) * fb) + b * cross
-                        sb += gv * ((v01 - v00) * ga + (v11 - v10) * fa) + a * cross
+                        sa += gv * ((v10 - v00) * gb + (v11 - v01) * fb)
+                        sb += gv * ((v01 - v00) * ga + (v11 - v10) * fa)
+                        if slopes:
+                            cross = v11 - v10 - v01 + v00
+                            sa += g_db[i, k, c] * cross
+                            sb += g_da[i, k, c] * cross
+                if coords:
                     grad_pa[i, k] = sa
                     grad_pb[i, k] = sb
 
@@ -160,11 +179,15 @@ class _PlaneLookupCPU(torch.autograd.Function):
         np_pa, np_pb = _f32(pa), _f32(pb)
         m, (k, _, _, c) = np_pa.shape[0], planes.shape
         zeros = np.zeros((m, k, c), dtype=np.float32)
+        no_slopes = np.empty((0, 0, 0), dtype=np.float32)
         gv = zeros if g_value is None else _f32(g_value)
-        ga = zeros if g_da is None else _f32(g_da)
-        gb = zeros if g_db is None else _f32(g_db)
+        if g_da is None and g_db is None:  # no derivative outputs, or none used
+            ga = gb = no_slopes
+        else:
+            ga = zeros if g_da is None else _f32(g_da)
+            gb = zeros if g_db is None else _f32(g_db)
         coords = ctx.needs_input_grad[1] or ctx.needs_input_grad[2]
-        partial = np.zeros((_BACKWARD_TASKS, *planes.shape), dtype=np.float32)
+        partial = np.zeros((backward_tasks(m), *planes.shape), dtype=np.float32)
         out_a = np.empty((m, k) if coords else (0, k), dtype=np.float32)
         out_b = np.empty_like(out_a)
         _lookup_backward(_f32(planes), np_pa, np_pb, gv, ga, gb, partial, out_a, out_b)
