@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from pidg.flow.gaussian_flow_cpu import flow_channels_cpu
 from pidg.flow.optical_flow import pixel_centers
 from pidg.render.camera import Camera
 from pidg.render.api import RenderBackend, project
@@ -72,7 +73,7 @@ def _valid_covariance(cov: Tensor) -> Tensor:
 
 def flow_features(
     proj_t: Projection, proj_t1: Projection, means2d_velocity: Tensor | None = None, valid: Tensor | None = None,
-    depth_changes: Tensor | None = None,
+    depth_changes: Tensor | None = None, kernel: bool | None = None,
 ) -> Tensor:
     """Per-Gaussian flow channels [N, 8] ([N, 6] without ``means2d_velocity``), differentiable.
 
@@ -82,23 +83,32 @@ def flow_features(
     culled at t (radius 0: not drawn anyway), for degenerate t+1 covariances, and where ``valid`` [N] is False
     (e.g. behind camera t at t+1, see :func:`gaussian_flow_features`). A Gaussian that merely leaves the image
     by t+1 keeps its flow: that motion is real.
+    ``kernel``: the numba kernels of :mod:`pidg.flow.gaussian_flow_cpu` (the default for CPU tensors) or, False,
+    the torch form below (any device; the reference the tests compare with).
     """
     cov_t, cov_t1 = proj_t.cov2d, proj_t1.cov2d
     keep = (proj_t.radii > 0).all(-1) & _valid_covariance(cov_t) & _valid_covariance(cov_t1)
     keep = keep & torch.isfinite(proj_t1.means2d.detach()).all(-1)
     if valid is not None:
         keep = keep & valid.to(keep.device)
+    mu_t = proj_t.means2d
+    if means2d_velocity is not None and tuple(means2d_velocity.shape) != tuple(mu_t.shape):
+        raise ValueError(f"means2d_velocity must be [N, 2] = {list(mu_t.shape)}, got {list(means2d_velocity.shape)}")
+    if kernel is None:
+        kernel = mu_t.device.type == "cpu"
+    if kernel:
+        features = flow_channels_cpu(cov_t, cov_t1, mu_t, proj_t1.means2d, means2d_velocity, keep)
+        if depth_changes is None:
+            return features
+        return torch.cat([features, torch.where(keep.unsqueeze(-1), depth_changes, torch.zeros_like(depth_changes))], dim=-1)
     # Substitute the identity covariance on dropped rows so no NaN reaches the (masked) gradient.
     eye = cov_t.new_tensor([1.0, 0.0, 1.0])
     k3 = keep.unsqueeze(-1)
     a = deformation_matrix(torch.where(k3, cov_t, eye), torch.where(k3, cov_t1, eye))
     m = a - torch.eye(2, dtype=a.dtype, device=a.device)
-    mu_t = proj_t.means2d
     m_mu = (m @ mu_t.unsqueeze(-1)).squeeze(-1)
     channels = [m.reshape(-1, 4), proj_t1.means2d - mu_t - m_mu]
     if means2d_velocity is not None:
-        if tuple(means2d_velocity.shape) != tuple(mu_t.shape):
-            raise ValueError(f"means2d_velocity must be [N, 2] = {list(mu_t.shape)}, got {list(means2d_velocity.shape)}")
         channels.append(means2d_velocity - mu_t - m_mu)
     if depth_changes is not None:
         channels.append(depth_changes)

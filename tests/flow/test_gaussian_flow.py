@@ -340,3 +340,46 @@ def test_depth_change_channels_need_the_motion_flow_and_a_layout_that_has_them()
                                g["scales"], camera_t1=cam, depth_change=True)
     with pytest.raises(ValueError, match="no depth-change channels"):
         decode_depth_changes(torch.zeros(H, W, 8), torch.ones(H, W))
+
+
+@pytest.mark.parametrize("velocity, depth_change", [(False, False), (True, False), (True, True)])
+def test_the_kernel_matches_the_torch_form_values_and_gradients(velocity: bool, depth_change: bool):
+    """The numba channels (pidg.flow.gaussian_flow_cpu) against autograd through the torch form, in float64 and
+    float32, on rows of every kind: kept, culled at t, degenerate or non-finite at t+1, and not ``valid``."""
+    from pidg.render.projection import Projection
+
+    n = 64
+    gen = torch.Generator().manual_seed(4)
+    cov_t, cov_t1 = random_spd(n, 5), random_spd(n, 6)
+    cov_t1[3] = torch.tensor([1.0, 1.0, 1.0], dtype=F64)  # singular at t+1
+    cov_t1[4, 0] = float("nan")
+    mu_t, mu_t1, mu_v = (torch.randn(n, 2, generator=gen, dtype=F64) * 20 + 15 for _ in range(3))
+    mu_t1[5] = float("inf")
+    radii = torch.randint(1, 9, (n, 2), generator=gen)
+    radii[6] = 0  # culled at t
+    valid = torch.ones(n, dtype=torch.bool)
+    valid[7] = False
+    dz = torch.randn(n, 2 if velocity else 1, generator=gen, dtype=F64)
+    upstream = torch.randn(n, flow_channel_count(velocity, depth_change), generator=gen, dtype=F64)
+    for dtype, tol in ((F64, 1e-10), (torch.float32, 2e-4)):
+        results = []
+        for kernel in (True, False):
+            leaves = [t.to(dtype).clone().requires_grad_(True) for t in (cov_t, cov_t1, mu_t, mu_t1, mu_v, dz)]
+            c0, c1, m0, m1, mv, d = leaves
+            zeros = torch.zeros(n, dtype=dtype)
+            feats = flow_features(Projection(m0, c0, zeros, radii, c0), Projection(m1, c1, zeros, radii, c1),
+                                  mv if velocity else None, valid, d if depth_change else None, kernel=kernel)
+            (feats * upstream.to(dtype)).sum().backward()
+            results.append((feats.detach(), [leaf.grad for leaf in leaves]))
+        (got, got_grads), (want, want_grads) = results
+        assert got.dtype == dtype and got.shape == want.shape
+        assert (got[3:8] == 0).all() and got[:3].abs().sum() > 0
+        scale = float(want.abs().max())
+        torch.testing.assert_close(got, want, rtol=tol, atol=tol * scale)
+        for name, g, w in zip(("cov_t", "cov_t1", "mu_t", "mu_t1", "mu_v", "dz"), got_grads, want_grads):
+            if g is None and w is None:  # an input this layout does not read
+                continue
+            w = torch.zeros_like(g) if w is None else w
+            g = torch.zeros_like(w) if g is None else g
+            torch.testing.assert_close(g, w, rtol=tol, atol=tol * float(w.abs().max().clamp_min(1.0)),
+                                       msg=lambda m, k=name: f"grad {k} ({dtype}): {m}")
