@@ -8,7 +8,7 @@ adds nothing there. The test is conservative by one pixel on every side.
 
 Two implementations of one test: :func:`footprints_touching_reference` (torch, any device) and a numba kernel for
 CPU tensors (one pass over the mask and one over the Gaussians, where the torch version is ~30 small ops over N:
-4 ms at 18k Gaussians and 400x400, against ~0.3 ms).
+3.1 ms at 18k Gaussians and a 400x300 mask, against 0.7 ms, measured).
 """
 from __future__ import annotations
 
