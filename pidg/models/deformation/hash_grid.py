@@ -439,13 +439,14 @@ class _HashEncodeCPU(torch.autograd.Function):
         _encode_forward(u, _f32(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
         ctx.save_for_backward(coords, table)
         ctx.layout = layout
+        ctx.unit_soa = u  # the backward reads the same clamped [3, N] copy (small), instead of making it again
         return torch.from_numpy(out).to(table.dtype)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):  # type: ignore[override]
         coords, table = ctx.saved_tensors
         layout: GridLayout = ctx.layout
-        u, g = _unit_soa(coords), _f32_rows(grad_out)
+        u, g = ctx.unit_soa, _f32_rows(grad_out)
         consts = (layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size)
         grad_coords = grad_table = None
         if ctx.needs_input_grad[1]:
