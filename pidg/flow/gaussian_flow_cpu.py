@@ -12,7 +12,8 @@ Per Gaussian, with S_t = (a0, b0, c0) and S_{t+1} = (a1, b1, c1) (upper triangle
     M = P Q - I,   b = mu_{t+1} - mu_t - M mu_t,   b_v = mu_v - mu_t - M mu_t
 
 and the backward is the chain rule through exactly these lines (P and Q are symmetric, so dL/dP = dL/dA Q and
-dL/dQ = P dL/dA). Arithmetic is float64 inside (the torch form runs in the input dtype). Rows where ``keep`` is
+dL/dQ = P dL/dA). Arithmetic is float64 inside (``np.float64`` casts: numba's ``float()`` of a float32 stays
+float32); the torch form runs in the input dtype. Rows where ``keep`` is
 False are zero and get no gradient, as in the torch form. Tests compare both passes with autograd through it.
 """
 from __future__ import annotations
@@ -50,14 +51,14 @@ def _forward(cov_t, cov_t1, mu_t, mu_t1, mu_v, keep, out):  # pragma: no cover -
                     out[i, j] = 0.0
                 continue
             p00, p01, p11, q00, q01, q11, _, _, _, _ = _roots(
-                float(cov_t[i, 0]), float(cov_t[i, 1]), float(cov_t[i, 2]),
-                float(cov_t1[i, 0]), float(cov_t1[i, 1]), float(cov_t1[i, 2]),
+                np.float64(cov_t[i, 0]), np.float64(cov_t[i, 1]), np.float64(cov_t[i, 2]),
+                np.float64(cov_t1[i, 0]), np.float64(cov_t1[i, 1]), np.float64(cov_t1[i, 2]),
             )
             m00 = p00 * q00 + p01 * q01 - 1.0
             m01 = p00 * q01 + p01 * q11
             m10 = p01 * q00 + p11 * q01
             m11 = p01 * q01 + p11 * q11 - 1.0
-            x, y = float(mu_t[i, 0]), float(mu_t[i, 1])
+            x, y = np.float64(mu_t[i, 0]), np.float64(mu_t[i, 1])
             mmu_x, mmu_y = m00 * x + m01 * y, m10 * x + m11 * y
             out[i, 0], out[i, 1], out[i, 2], out[i, 3] = m00, m01, m10, m11
             out[i, 4] = mu_t1[i, 0] - x - mmu_x
@@ -84,17 +85,17 @@ def _backward(cov_t, cov_t1, mu_t, keep, grad, g_cov_t, g_cov_t1, g_mu_t, g_mu_t
                     if velocity:
                         g_mu_v[i, j] = 0.0
                 continue
-            a0, b0, c0 = float(cov_t[i, 0]), float(cov_t[i, 1]), float(cov_t[i, 2])
-            a1, b1, c1 = float(cov_t1[i, 0]), float(cov_t1[i, 1]), float(cov_t1[i, 2])
+            a0, b0, c0 = np.float64(cov_t[i, 0]), np.float64(cov_t[i, 1]), np.float64(cov_t[i, 2])
+            a1, b1, c1 = np.float64(cov_t1[i, 0]), np.float64(cov_t1[i, 1]), np.float64(cov_t1[i, 2])
             p00, p01, p11, q00, q01, q11, s0, t0, s1, t1 = _roots(a0, b0, c0, a1, b1, c1)
             m00 = p00 * q00 + p01 * q01 - 1.0
             m01 = p00 * q01 + p01 * q11
             m10 = p01 * q00 + p11 * q01
             m11 = p01 * q01 + p11 * q11 - 1.0
-            x, y = float(mu_t[i, 0]), float(mu_t[i, 1])
+            x, y = np.float64(mu_t[i, 0]), np.float64(mu_t[i, 1])
             # offsets: b = mu1 - mu - M mu (and b_v = mu_v - mu - M mu)
-            gb_x, gb_y = float(grad[i, 4]), float(grad[i, 5])
-            gv_x, gv_y = (float(grad[i, 6]), float(grad[i, 7])) if velocity else (0.0, 0.0)
+            gb_x, gb_y = np.float64(grad[i, 4]), np.float64(grad[i, 5])
+            gv_x, gv_y = (np.float64(grad[i, 6]), np.float64(grad[i, 7])) if velocity else (0.0, 0.0)
             g_mmu_x, g_mmu_y = -(gb_x + gv_x), -(gb_y + gv_y)  # gradient of M mu
             g_mu_t1[i, 0], g_mu_t1[i, 1] = gb_x, gb_y
             if velocity:
@@ -102,10 +103,10 @@ def _backward(cov_t, cov_t1, mu_t, keep, grad, g_cov_t, g_cov_t1, g_mu_t, g_mu_t
             g_mu_t[i, 0] = g_mmu_x + m00 * g_mmu_x + m10 * g_mmu_y
             g_mu_t[i, 1] = g_mmu_y + m01 * g_mmu_x + m11 * g_mmu_y
             # M = P Q - I: dL/dA = dL/dM, with M mu's share
-            ga00 = float(grad[i, 0]) + g_mmu_x * x
-            ga01 = float(grad[i, 1]) + g_mmu_x * y
-            ga10 = float(grad[i, 2]) + g_mmu_y * x
-            ga11 = float(grad[i, 3]) + g_mmu_y * y
+            ga00 = np.float64(grad[i, 0]) + g_mmu_x * x
+            ga01 = np.float64(grad[i, 1]) + g_mmu_x * y
+            ga10 = np.float64(grad[i, 2]) + g_mmu_y * x
+            ga11 = np.float64(grad[i, 3]) + g_mmu_y * y
             # dL/dP = dL/dA Q, dL/dQ = P dL/dA; the symmetric entries' two gradients add
             gp00 = ga00 * q00 + ga01 * q01
             gp01 = (ga00 * q01 + ga01 * q11) + (ga10 * q00 + ga11 * q01)

@@ -383,3 +383,15 @@ def test_the_kernel_matches_the_torch_form_values_and_gradients(velocity: bool, 
             g = torch.zeros_like(w) if g is None else g
             torch.testing.assert_close(g, w, rtol=tol, atol=tol * float(w.abs().max().clamp_min(1.0)),
                                        msg=lambda m, k=name: f"grad {k} ({dtype}): {m}")
+
+
+def test_the_kernel_computes_in_float64_whatever_the_inputs():
+    """Unchanged covariances give A = I: M is 0 to float64 rounding from float32 inputs too (float32 arithmetic
+    leaves ~1e-7), as the kernel module says."""
+    from pidg.render.projection import Projection
+
+    cov = random_spd(200, 9).to(torch.float32)
+    mu = torch.randn(200, 2, generator=torch.Generator().manual_seed(2)) * 50
+    proj = Projection(mu, cov, torch.zeros(200), torch.ones(200, 2, dtype=torch.int64), cov)
+    m = flow_features(proj, proj, kernel=True)[:, :4]
+    assert m.dtype == torch.float32 and float(m.abs().max()) < 1e-12
