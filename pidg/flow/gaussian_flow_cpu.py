@@ -12,9 +12,8 @@ Per Gaussian, with S_t = (a0, b0, c0) and S_{t+1} = (a1, b1, c1) (upper triangle
     M = P Q - I,   b = mu_{t+1} - mu_t - M mu_t,   b_v = mu_v - mu_t - M mu_t
 
 and the backward is the chain rule through exactly these lines (P and Q are symmetric, so dL/dP = dL/dA Q and
-dL/dQ = P dL/dA). Arithmetic is float64 inside (``np.float64`` casts: numba's ``float()`` of a float32 stays
-float32); the torch form runs in the input dtype. Rows where ``keep`` is
-False are zero and get no gradient, as in the torch form. Tests compare both passes with autograd through it.
+dL/dQ = P dL/dA). Arithmetic is float64 inside (:func:`_row`); the torch form runs in the input dtype. Rows where
+``keep`` is False are zero and get no gradient, as in the torch form. Tests compare both passes with autograd through it.
 """
 from __future__ import annotations
 
@@ -39,6 +38,18 @@ def _roots(a0, b0, c0, a1, b1, c1):  # pragma: no cover - compiled
     return (a1 + s1) / t1, b1 / t1, (c1 + s1) / t1, (c0 + s0) / u0, -b0 / u0, (a0 + s0) / u0, s0, t0, s1, t1
 
 
+@njit(cache=True, inline="always")
+def _row(cov, i):  # pragma: no cover - compiled
+    """Row i's (a, b, c) in float64 (``np.float64``: numba's ``float()`` of a float32 stays float32)."""
+    return np.float64(cov[i, 0]), np.float64(cov[i, 1]), np.float64(cov[i, 2])
+
+
+@njit(cache=True, inline="always")
+def _minus_identity(p00, p01, p11, q00, q01, q11):  # pragma: no cover - compiled
+    """M = P Q - I (row-major entries) for the symmetric P and Q of :func:`_roots`."""
+    return p00 * q00 + p01 * q01 - 1.0, p00 * q01 + p01 * q11, p01 * q00 + p11 * q01, p01 * q01 + p11 * q11 - 1.0
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _forward(cov_t, cov_t1, mu_t, mu_t1, mu_v, keep, out):  # pragma: no cover - compiled
     """out [N, 6 or 8]: M (row-major), b, and b_v when ``mu_v`` has rows; zero rows where ``keep`` is False."""
@@ -50,14 +61,9 @@ def _forward(cov_t, cov_t1, mu_t, mu_t1, mu_v, keep, out):  # pragma: no cover -
                 for j in range(out.shape[1]):
                     out[i, j] = 0.0
                 continue
-            p00, p01, p11, q00, q01, q11, _, _, _, _ = _roots(
-                np.float64(cov_t[i, 0]), np.float64(cov_t[i, 1]), np.float64(cov_t[i, 2]),
-                np.float64(cov_t1[i, 0]), np.float64(cov_t1[i, 1]), np.float64(cov_t1[i, 2]),
-            )
-            m00 = p00 * q00 + p01 * q01 - 1.0
-            m01 = p00 * q01 + p01 * q11
-            m10 = p01 * q00 + p11 * q01
-            m11 = p01 * q01 + p11 * q11 - 1.0
+            (a0, b0, c0), (a1, b1, c1) = _row(cov_t, i), _row(cov_t1, i)
+            p00, p01, p11, q00, q01, q11, _, _, _, _ = _roots(a0, b0, c0, a1, b1, c1)
+            m00, m01, m10, m11 = _minus_identity(p00, p01, p11, q00, q01, q11)
             x, y = np.float64(mu_t[i, 0]), np.float64(mu_t[i, 1])
             mmu_x, mmu_y = m00 * x + m01 * y, m10 * x + m11 * y
             out[i, 0], out[i, 1], out[i, 2], out[i, 3] = m00, m01, m10, m11
@@ -85,13 +91,9 @@ def _backward(cov_t, cov_t1, mu_t, keep, grad, g_cov_t, g_cov_t1, g_mu_t, g_mu_t
                     if velocity:
                         g_mu_v[i, j] = 0.0
                 continue
-            a0, b0, c0 = np.float64(cov_t[i, 0]), np.float64(cov_t[i, 1]), np.float64(cov_t[i, 2])
-            a1, b1, c1 = np.float64(cov_t1[i, 0]), np.float64(cov_t1[i, 1]), np.float64(cov_t1[i, 2])
+            (a0, b0, c0), (a1, b1, c1) = _row(cov_t, i), _row(cov_t1, i)
             p00, p01, p11, q00, q01, q11, s0, t0, s1, t1 = _roots(a0, b0, c0, a1, b1, c1)
-            m00 = p00 * q00 + p01 * q01 - 1.0
-            m01 = p00 * q01 + p01 * q11
-            m10 = p01 * q00 + p11 * q01
-            m11 = p01 * q01 + p11 * q11 - 1.0
+            m00, m01, m10, m11 = _minus_identity(p00, p01, p11, q00, q01, q11)
             x, y = np.float64(mu_t[i, 0]), np.float64(mu_t[i, 1])
             # offsets: b = mu1 - mu - M mu (and b_v = mu_v - mu - M mu)
             gb_x, gb_y = np.float64(grad[i, 4]), np.float64(grad[i, 5])
