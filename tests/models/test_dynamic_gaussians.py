@@ -170,7 +170,9 @@ def test_footprints_touching_finds_exactly_the_gaussians_drawn_on_masked_pixels(
     from pidg.render.footprint import footprints_touching
     from pidg.render.projection import project_gaussians
 
-    model = moved(DynamicGaussians.from_scene(scene, GaussianModelConfig(), SMALL, None))
+    with torch.random.fork_rng():  # the deformation's initial weights: the same draw whatever ran before
+        torch.manual_seed(0)
+        model = moved(DynamicGaussians.from_scene(scene, GaussianModelConfig(), SMALL, None))
     frame = scene.train[0]
     mask = torch.zeros(frame.height, frame.width, dtype=torch.bool)
     mask[10:14, 5:9] = True
@@ -188,4 +190,6 @@ def test_footprints_touching_finds_exactly_the_gaussians_drawn_on_masked_pixels(
             reached[block] = (out.features[mask] > 0).any(dim=0)
     assert reached.sum() > 0
     assert not (reached & ~found).any()  # never misses one that is drawn there
-    assert found.sum() < 0.5 * n  # and is not trivially everything
+    # and is tight: a box around each ellipse (plus one pixel) over-reports, here ~1.5x what is drawn (half of the
+    # 200 Gaussians, whose radii are ~7.5 px on this 32 px image); 2x leaves room for other initial weights
+    assert found.sum() <= 2 * reached.sum() and found.sum() < n
