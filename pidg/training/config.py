@@ -20,6 +20,7 @@ from pidg.training.densification import DensificationConfig
 
 Preset = Literal["auto", "paper", "cpu", "none"]
 DatasetLayout = Literal["dnerf", "pidg", "hypernerf"]
+BudgetPolicy = Literal["stop", "fit"]
 
 
 @dataclass
@@ -90,7 +91,16 @@ class OptimConfig:
     time_curriculum_start: Annotated[float, UNIT] = 0.1
     """The curriculum's first window, as a share of the training times' span (read when time_curriculum_steps > 0)."""
     time_budget_minutes: Annotated[float, POSITIVE] | None = None
-    """Stop early (with a checkpoint) when this much training time has passed; none: no budget."""
+    """Training time allowed, in minutes (steps only: evaluation, previews and checkpoint writes are not counted);
+    none: no budget. What happens at the budget is time_budget_policy's choice."""
+    time_budget_policy: BudgetPolicy = "stop"
+    """"stop": stop (with a checkpoint) when the budget is spent, wherever the schedule is (its learning-rate decay may
+    not have finished). "fit": once the model's size has settled (after densification and the static/dynamic split,
+    or at a tenth of the run without them), measure the step time and shorten the run, never lengthen it, so that
+    it ends inside the budget; the learning rates then decay over the shortened run, and the budget still stops a
+    run that slows down later. The run's length then depends on the machine's speed (it is logged, saved in the
+    checkpoint's config and in train_summary.json as ``schedule_fit``; give --optim.iterations with
+    --optim.time_budget_minutes none to repeat a run exactly)."""
     dynamic_vote: Annotated[float, UNIT] = 0.4
     """Static/dynamic decoupling: a Gaussian is dynamic if inside the motion mask in more than this share of the
     training views that see it."""
@@ -207,10 +217,14 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 #: all): half a band of tiles takes the full method's step from x1.61 to x1.48 of the base step (bouncingballs, 18k
 #: trained Gaussians, 400x400), and on the three scenes with true motion (the demo, make-scene kinematic and rigid)
 #: PSNR and flow errors moved by less than one run's own noise (README, "Measured on this project's 2-core CPU").
+#: The schedule is fitted to a 30-minute budget (``OptimConfig.time_budget_policy`` "fit"): the same 12000 steps took
+#: 20-28 minutes on one processor of this machine and 31.6-39.5 on another, so a fixed count cannot promise the
+#: budget; fitted, a slow machine shortens the run once the model's size settles, and a fast one runs it unchanged.
 CPU_FLOW_TILE_FRACTION = 0.5
 CPU_DNERF_SCHEDULE = {"iterations": 12_000, "densify_start": 300, "densify_stop": 5000, "opacity_reset_every": 2000,
                       "random_init_points": 20_000, "max_gaussians": 30_000, "temporal_finest": (32, 32, 64),
-                      "max_translation": 1.0, "max_log_scale_change": 2.0}
+                      "max_translation": 1.0, "max_log_scale_change": 2.0,
+                      "time_budget_minutes": 30.0, "time_budget_policy": "fit"}
 
 
 def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLayout | None = None) -> TrainConfig:
@@ -223,7 +237,8 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
     velocity-flow error 1.00 against 1.03 px, x1.30 the step rate); the flow loss on half of its tiles per step
     (``CPU_FLOW_TILE_FRACTION``); on D-NeRF scenes also a schedule for a CPU's budget
     (``CPU_DNERF_SCHEDULE``: 12000 steps, densification 300-5000 up to 30k Gaussians, opacity reset every 2000, 20k
-    random points, temporal grids up to 64 cells along t, the warp's translation and log-scale change soft-bounded).
+    random points, temporal grids up to 64 cells along t, the warp's translation and log-scale change soft-bounded,
+    shortened where needed to end inside 30 minutes of training).
     Their resolutions only grow from 8 to 32 (16 along t), so 32 levels sit 4.6% apart; 16 levels (9% apart) cover
     the same range at half the lookups (up to 64 along t on D-NeRF: 6.9% and 14.9% apart), and the temporal grids were
     the largest item of a CPU step (63 of ~260 ms at 23k Gaussians, 400x400).
@@ -253,7 +268,9 @@ def apply_preset(config: TrainConfig, preset: Preset = "auto", layout: DatasetLa
             config = replace(
                 config,
                 deformation=replace(config.deformation, grid4d=bounded),
-                optim=replace(config.optim, iterations=CPU_DNERF_SCHEDULE["iterations"]),
+                optim=replace(config.optim, iterations=CPU_DNERF_SCHEDULE["iterations"],
+                              time_budget_minutes=CPU_DNERF_SCHEDULE["time_budget_minutes"],
+                              time_budget_policy=CPU_DNERF_SCHEDULE["time_budget_policy"]),
                 densify=replace(config.densify, start=CPU_DNERF_SCHEDULE["densify_start"], stop=CPU_DNERF_SCHEDULE["densify_stop"],
                                 opacity_reset_every=CPU_DNERF_SCHEDULE["opacity_reset_every"],
                                 max_gaussians=CPU_DNERF_SCHEDULE["max_gaussians"]),
@@ -282,4 +299,6 @@ def describe_schedule(config: TrainConfig) -> str:
         + (f"; flow loss on {config.flow.tile_fraction:g} of its tiles a step" if config.flow.enabled else "")
         + (f"; time curriculum over {o.time_curriculum_steps} steps from {o.time_curriculum_start:g} of the recording"
            if o.time_curriculum_steps else "")
+        + (f"; a {o.time_budget_minutes:g}-minute budget ({'the run is shortened to fit it' if o.time_budget_policy == 'fit' else 'stops there'})"
+           if o.time_budget_minutes is not None else "")
     )

@@ -104,38 +104,52 @@ def _groups(groups: dict[str, list[torch.nn.Parameter]], lrs: dict[str, float], 
     ]
 
 
+#: The optimizers whose rates decay like the networks' (``OptimConfig.deformation_lr_decay_every``)
+FIELD_OPTIMIZERS = ("deformation", "material", "material_embedding")
+
+
+def schedule_for(name: str, config: TrainConfig, scene_extent: float) -> Schedule:
+    """The learning-rate schedule of the optimizer ``name`` (a key of ``make_optimizers``' result) under ``config``:
+    positions decay log-linearly, the fields' networks and grids x0.1 per decay period, the rest keep their rate."""
+    o, g = config.optim, config.gaussian_optim
+    if name == "means":
+        return lambda step, base: means_lr_at(step, g, scene_extent, o.iterations)
+    if name in FIELD_OPTIMIZERS:
+        return lambda step, base: base * 0.1 ** (step / max(o.deformation_lr_decay_every or o.iterations, 1))
+    return lambda step, base: base
+
+
+def reschedule(optimizers: dict[str, ScheduledOptimizer], config: TrainConfig, scene_extent: float) -> None:
+    """Give every optimizer the schedule of ``config`` (a run shortened to fit its time budget decays over the new
+    length); moments and step counts stay."""
+    for name, opt in optimizers.items():
+        opt.schedule = schedule_for(name, config, scene_extent)
+
+
 def make_optimizers(model: DynamicGaussians, config: TrainConfig, scene_extent: float) -> dict[str, ScheduledOptimizer]:
     """All optimizers of a run: the Gaussian parameters' (keyed by parameter name), ``deformation``, and with a
     material field ``material`` and ``material_embedding``."""
     o, g = config.optim, config.gaussian_optim
-
-    def constant(step: int, base: float) -> float:
-        return base
-
-    def means(step: int, base: float) -> float:
-        return means_lr_at(step, g, scene_extent, o.iterations)
-
-    def decayed(step: int, base: float) -> float:  # networks and fields alike
-        return base * 0.1 ** (step / max(o.deformation_lr_decay_every or o.iterations, 1))
-
     out = {
-        name: ScheduledOptimizer(opt, means if name == "means" else constant)
+        name: ScheduledOptimizer(opt, schedule_for(name, config, scene_extent))
         for name, opt in make_gaussian_optimizers(model.gaussians, g, scene_extent).items()
     }
     lrs = {GROUP_GRID: o.deformation_lr * o.grid_lr_factor, GROUP_MLP: o.deformation_lr}
     groups = _groups(model.deformation.parameter_groups(), lrs, "")
     if groups:
-        out["deformation"] = ScheduledOptimizer(adam(groups, betas=BETAS, eps=EPS), decayed, start=o.static_warmup)
+        out["deformation"] = ScheduledOptimizer(adam(groups, betas=BETAS, eps=EPS), schedule_for("deformation", config, scene_extent),
+                                                start=o.static_warmup)
     if model.material_field is not None:
         field_groups = model.material_field.parameter_groups()
         lrs = {GROUP_GRID: o.material_lr * o.material_grid_lr_factor, GROUP_MLP: o.material_lr}
         dense = _groups(field_groups, lrs, "material_")
         if dense:
-            out["material"] = ScheduledOptimizer(adam(dense, betas=BETAS, eps=EPS), decayed)
+            out["material"] = ScheduledOptimizer(adam(dense, betas=BETAS, eps=EPS), schedule_for("material", config, scene_extent))
         # The embedding's gradient is sparse (only the M sampled rows): a dense one would cost a zero-filled [P, H]
         # tensor and a full Adam update per step, i.e. time and memory growing with the number of particles
         # (measured: +24 ms per step at P = 200k). SparseAdam also leaves rows that were not sampled untouched.
         sparse = _groups(field_groups, {GROUP_EMBEDDING: o.material_embedding_lr}, "material_")
         if sparse:
-            out["material_embedding"] = ScheduledOptimizer(torch.optim.SparseAdam(sparse, betas=BETAS, eps=EPS), decayed)
+            out["material_embedding"] = ScheduledOptimizer(torch.optim.SparseAdam(sparse, betas=BETAS, eps=EPS),
+                                                           schedule_for("material_embedding", config, scene_extent))
     return out

@@ -15,7 +15,7 @@ import threading
 import time
 from collections import defaultdict
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -46,12 +46,16 @@ from pidg.training.config import TrainConfig, describe_schedule
 from pidg.training.decoupling import StaticDynamicDecoupling
 from pidg.training.densification import DensificationStrategy
 from pidg.training.losses import LossTerm, StepInputs, build_loss_terms, ssim_kernel
-from pidg.training.optim import make_optimizers
+from pidg.training.optim import make_optimizers, reschedule
 
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "pidg-checkpoint-2"
 STEP_PHASES = ("deformation", "physics", "flow_target", "flow", "render", "loss", "backward", "optimizer", "densification")
+#: A budget-fitted schedule measures the step time over this many steps (at most a tenth of what is left)
+FIT_WINDOW_STEPS = 200
+#: ... and plans to use this share of the budget, so that the machine's noise does not end the run at the hard stop
+FIT_BUDGET_SHARE = 0.98
 
 
 @dataclass
@@ -117,6 +121,9 @@ class Trainer:
         self._order: list[int] = []
         self.step = 0
         self.train_seconds = 0.0
+        self.clock = time.perf_counter  # what train_seconds is measured with (a test can drive it)
+        self.schedule_fit: dict | None = None  # how the run was fitted to its time budget (policy "fit"), once done
+        self._fit_mark: tuple[int, float] | None = None  # (step, train_seconds) where the fit's step timing began
         self.rollbacks = 0  # times a non-finite step sent the run back to its last good checkpoint
         self.lr_scale = 1.0  # every learning rate times this (rollback_lr_factor per rollback)
         self.last_good_step: int | None = None  # the step of the last checkpoint this trainer wrote or resumed from
@@ -262,11 +269,12 @@ class Trainer:
         writer = _tensorboard(out_dir / "tensorboard")
         bar = tqdm(total=total, initial=self.step, desc="training", disable=not cfg.output.progress, dynamic_ncols=True)
         budget = None if cfg.optim.time_budget_minutes is None else 60.0 * cfg.optim.time_budget_minutes
+        fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy == "fit"
         stopped_by = None
         try:
             with _GracefulInterrupt() as interrupt:
                 while self.step < total:
-                    t0 = time.perf_counter()
+                    t0 = self.clock()
                     try:
                         parts = self.train_step()
                     except NonFiniteError as err:
@@ -274,7 +282,10 @@ class Trainer:
                         bar.reset(total=total)
                         bar.update(self.step)
                         continue
-                    self.train_seconds += time.perf_counter() - t0
+                    self.train_seconds += self.clock() - t0
+                    if fitting and self.schedule_fit is None and self._fit_to_budget(budget, out_dir):
+                        total = self.config.optim.iterations
+                        bar.total = total
                     if self.step % cfg.output.log_every == 0 or self.step == total:
                         self.history.append({"step": self.step, **parts})
                         bar.set_postfix(loss=f"{parts['loss']:.4f}", psnr=f"{parts['psnr']:.2f}", n=parts["gaussians"])
@@ -312,6 +323,48 @@ class Trainer:
         summary = self.summary(stopped_by)
         (out_dir / "train_summary.json").write_text(json.dumps(summary, indent=2))
         return summary
+
+    def fit_start(self) -> int:
+        """The step from which a budget-fitted run times its steps: after densification and the static/dynamic split,
+        when the number of Gaussians (and so the step time) has settled; at a tenth of the run without them."""
+        o, d = self.config.optim, self.config.densify
+        settled = d.stop + o.static_warmup + 1
+        return max(settled if settled < 0.9 * o.iterations else 0, o.iterations // 10)
+
+    def _fit_to_budget(self, budget_seconds: float, out_dir: Path) -> bool:
+        """Time the steps from ``fit_start()`` over ``FIT_WINDOW_STEPS``, then shorten the run (never lengthen it) so
+        that it ends inside the budget, with every learning-rate schedule over the new length. True when the run's
+        length was decided at this step (``self.schedule_fit`` records how), shortened or not."""
+        o = self.config.optim
+        start = self.fit_start()
+        if self.step < start:
+            return False
+        if self._fit_mark is None:
+            self._fit_mark = (self.step, self.train_seconds)
+            return False
+        mark_step, mark_seconds = self._fit_mark
+        if self.step - mark_step < max(1, min(FIT_WINDOW_STEPS, (o.iterations - start) // 10)):
+            return False
+        per_step = (self.train_seconds - mark_seconds) / (self.step - mark_step)
+        affordable = int((FIT_BUDGET_SHARE * budget_seconds - self.train_seconds) / max(per_step, 1e-9))
+        iterations = min(o.iterations, self.step + max(affordable, 1))
+        self.schedule_fit = {
+            "step": self.step, "seconds_per_step": per_step, "budget_minutes": budget_seconds / 60.0,
+            "iterations_planned": o.iterations, "iterations": iterations,
+        }
+        if iterations < o.iterations:
+            self.config = replace(self.config, optim=replace(o, iterations=iterations))
+            reschedule(self.optimizers, self.config, self.extent)
+            save_config(self.config, out_dir / CONFIG_FILE)
+            logger.info(
+                "step %d: %.3f s a step over steps %d-%d, so %d of the planned %d steps fit the %g-minute budget; "
+                "the run and its learning-rate schedules now end at step %d",
+                self.step, per_step, mark_step, self.step, iterations, o.iterations, budget_seconds / 60.0, iterations,
+            )
+        else:
+            logger.info("step %d: %.3f s a step; the planned %d steps fit the %g-minute budget", self.step, per_step,
+                        o.iterations, budget_seconds / 60.0)
+        return True
 
     def _roll_back(self, checkpoint: Path, err: NonFiniteError) -> None:
         """Back to the last good checkpoint with every learning rate times ``rollback_lr_factor``; a clear stop
@@ -354,6 +407,7 @@ class Trainer:
             "dynamic_gaussians": self.model.num_gaussians if dynamic is None else int(dynamic.sum()),
             "stopped_by_time_budget": stopped_by == "time_budget",
             "stopped_by": stopped_by,  # None (finished), "time_budget" or "interrupt"
+            "schedule_fit": self.schedule_fit,  # a budget-fitted run: the step time measured and the length chosen
             "rollbacks": self.rollbacks,
             "lr_scale": self.lr_scale,
             "step_breakdown_ms": self.timer.breakdown_ms(),
@@ -394,6 +448,8 @@ class Trainer:
             "timer": {"totals": dict(self.timer.totals), "steps": self.timer.steps},
             "rollbacks": self.rollbacks,
             "lr_scale": self.lr_scale,
+            "schedule_fit": self.schedule_fit,
+            "fit_mark": self._fit_mark,
         }
 
     def save_checkpoint(self, path: Path) -> Path:
@@ -424,6 +480,9 @@ class Trainer:
         self.timer.steps = int(state["timer"]["steps"])
         self.rollbacks = int(state["rollbacks"])
         self.lr_scale = float(state["lr_scale"])
+        self.schedule_fit = state.get("schedule_fit")  # absent from checkpoints written before budget fitting
+        mark = state.get("fit_mark")
+        self._fit_mark = None if mark is None else (int(mark[0]), float(mark[1]))
         for _, tensor in self._named_parameters():  # no gradient of a step that did not finish survives a rollback
             tensor.grad = None
 
