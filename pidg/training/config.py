@@ -299,6 +299,6 @@ def describe_schedule(config: TrainConfig) -> str:
         + (f"; flow loss on {config.flow.tile_fraction:g} of its tiles a step" if config.flow.enabled else "")
         + (f"; time curriculum over {o.time_curriculum_steps} steps from {o.time_curriculum_start:g} of the recording"
            if o.time_curriculum_steps else "")
-        + (f"; a {o.time_budget_minutes:g}-minute budget ({'the run is shortened to fit it' if o.time_budget_policy == 'fit' else 'stops there'})"
+        + (f"; a {o.time_budget_minutes:g}-minute budget ({'shortened to fit it if too slow' if o.time_budget_policy == 'fit' else 'the run stops there'})"
            if o.time_budget_minutes is not None else "")
     )
