@@ -3,7 +3,6 @@ smaller learning rates, Ctrl-C stops after the step with a checkpoint, run folde
 resume refuses to change the data or the model, and every bad option is one line naming it."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
-import dataclasses
 import json
 import os
 import signal
@@ -13,29 +12,11 @@ import torch
 
 from pidg.checkpoint import load_checkpoint
 from pidg.cli import main
-from pidg.data.procedural import ProceduralSceneConfig, make_procedural_scene, write_procedural_dataset
+from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.errors import TrainingFailed
-from pidg.models.deformation import HashGridConfig
 from pidg.training import losses
-from pidg.training.config import TrainConfig
 from pidg.training.optim import ScheduledOptimizer
 from pidg.training.trainer import Trainer
-
-
-@pytest.fixture(scope="module")
-def scene():
-    return make_procedural_scene(ProceduralSceneConfig(n_train=6, n_test=2, width=24, height=24, n_gaussians=600, n_init_points=150))
-
-
-def small_config(out_dir, iterations=10, **optim) -> TrainConfig:
-    cfg = TrainConfig(device="cpu")
-    cfg.deformation.grid4d = dataclasses.replace(
-        cfg.deformation.grid4d, spatial_grid=HashGridConfig(4, 2, 12, 4, 64), temporal_grid=HashGridConfig(4, 2, 12, 4, 16), width=16
-    )
-    cfg.densify = dataclasses.replace(cfg.densify, start=2, stop=8, every=2, opacity_reset_every=100)
-    cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations, **optim)
-    cfg.output = dataclasses.replace(cfg.output, dir=out_dir, checkpoint_every=4, progress=False, preview_every=0, log_every=1)
-    return cfg
 
 
 def nan_photometric_loss(monkeypatch, steps):
@@ -68,9 +49,9 @@ def finite_checkpoint_step(path) -> int:
     return int(state["step"])
 
 
-def test_a_diverging_run_stops_clearly_and_keeps_the_last_good_checkpoint(scene, tmp_path, monkeypatch):
+def test_a_diverging_run_stops_clearly_and_keeps_the_last_good_checkpoint(small_scene, small_config, tmp_path, monkeypatch):
     nan_photometric_loss(monkeypatch, ALWAYS)
-    trainer = Trainer(small_config(tmp_path, max_rollbacks=2), scene)
+    trainer = Trainer(small_config(tmp_path, max_rollbacks=2), small_scene)
     with pytest.raises(TrainingFailed, match=r"diverged at step 6: the loss is nan.*after 2 rollbacks.*step 4"):
         trainer.train()
     assert finite_checkpoint_step(tmp_path / "checkpoint.pt") == 4  # the failure did not overwrite it
@@ -78,9 +59,9 @@ def test_a_diverging_run_stops_clearly_and_keeps_the_last_good_checkpoint(scene,
     assert failed["format"] == "pidg-failed-state" and failed["rollbacks"] == 2
 
 
-def test_a_transient_nan_rolls_back_with_smaller_learning_rates(scene, tmp_path, monkeypatch):
+def test_a_transient_nan_rolls_back_with_smaller_learning_rates(small_scene, small_config, tmp_path, monkeypatch):
     nan_photometric_loss(monkeypatch, {6})
-    trainer = Trainer(small_config(tmp_path), scene)
+    trainer = Trainer(small_config(tmp_path), small_scene)
     summary = trainer.train()
     assert summary["iterations"] == 10 and summary["rollbacks"] == 1 and summary["lr_scale"] == 0.5
     means = trainer.optimizers["means"]
@@ -88,7 +69,7 @@ def test_a_transient_nan_rolls_back_with_smaller_learning_rates(scene, tmp_path,
     assert finite_checkpoint_step(tmp_path / "checkpoint.pt") == 10
 
 
-def test_non_finite_parameters_after_the_optimizer_step_roll_back(scene, tmp_path, monkeypatch):
+def test_non_finite_parameters_after_the_optimizer_step_roll_back(small_scene, small_config, tmp_path, monkeypatch):
     original = ScheduledOptimizer.step
     poisoned = []
 
@@ -100,13 +81,13 @@ def test_non_finite_parameters_after_the_optimizer_step_roll_back(scene, tmp_pat
                 self.optimizer.param_groups[0]["params"][0][0] = float("nan")  # as an eps=0 Adam update would
 
     monkeypatch.setattr(ScheduledOptimizer, "step", step)
-    trainer = Trainer(small_config(tmp_path), scene)
+    trainer = Trainer(small_config(tmp_path), small_scene)
     summary = trainer.train()
     assert poisoned == [5] and summary["rollbacks"] == 1 and summary["iterations"] == 10
 
 
-def test_an_error_keeps_the_last_good_checkpoint_and_names_both_files(scene, tmp_path, monkeypatch):
-    trainer = Trainer(small_config(tmp_path), scene)
+def test_an_error_keeps_the_last_good_checkpoint_and_names_both_files(small_scene, small_config, tmp_path, monkeypatch):
+    trainer = Trainer(small_config(tmp_path), small_scene)
     original = trainer.train_step
 
     def failing_step():
@@ -120,8 +101,8 @@ def test_an_error_keeps_the_last_good_checkpoint_and_names_both_files(scene, tmp
     assert finite_checkpoint_step(tmp_path / "checkpoint.pt") == 4
 
 
-def test_ctrl_c_finishes_the_step_and_checkpoints(scene, tmp_path, monkeypatch):
-    trainer = Trainer(small_config(tmp_path), scene)
+def test_ctrl_c_finishes_the_step_and_checkpoints(small_scene, small_config, tmp_path, monkeypatch):
+    trainer = Trainer(small_config(tmp_path), small_scene)
     original = trainer.train_step
 
     def step_with_interrupt():
@@ -137,9 +118,9 @@ def test_ctrl_c_finishes_the_step_and_checkpoints(scene, tmp_path, monkeypatch):
     assert signal.getsignal(signal.SIGINT) is before  # restored
 
 
-def test_stale_temporaries_of_interrupted_saves_are_removed(scene, tmp_path):
+def test_stale_temporaries_of_interrupted_saves_are_removed(small_scene, small_config, tmp_path):
     (tmp_path / ".checkpoint.pt.abc123.tmp").write_bytes(b"half a checkpoint")
-    Trainer(small_config(tmp_path, iterations=1), scene).train()
+    Trainer(small_config(tmp_path, iterations=1), small_scene).train()
     assert not list(tmp_path.glob(".*.tmp"))
 
 

@@ -2,15 +2,12 @@
 learning-rate schedule over the new length; a machine fast enough for the planned run trains it unchanged."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
-import dataclasses
 import json
 
 import pytest
 import torch
 
 from pidg.checkpoint import load_checkpoint
-from pidg.data.procedural import ProceduralSceneConfig, make_procedural_scene
-from pidg.models.deformation import HashGridConfig
 from pidg.training.config import TrainConfig, apply_preset
 from pidg.training.optim import means_lr_at
 from pidg.training.trainer import Trainer
@@ -18,20 +15,10 @@ from pidg.training.trainer import Trainer
 SECONDS_PER_STEP = 0.5
 
 
-@pytest.fixture(scope="module")
-def scene():
-    return make_procedural_scene(ProceduralSceneConfig(n_train=6, n_test=2, width=24, height=24, n_gaussians=600, n_init_points=150))
-
-
-def config(out_dir, budget_minutes, policy, iterations=40) -> TrainConfig:
-    cfg = TrainConfig(device="cpu")
-    cfg.deformation.grid4d = dataclasses.replace(
-        cfg.deformation.grid4d, spatial_grid=HashGridConfig(4, 2, 12, 4, 64), temporal_grid=HashGridConfig(4, 2, 12, 4, 16), width=16
-    )
-    cfg.densify = dataclasses.replace(cfg.densify, start=2, stop=8, every=2, opacity_reset_every=100)
-    cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations, time_budget_minutes=budget_minutes, time_budget_policy=policy)
-    cfg.output = dataclasses.replace(cfg.output, dir=out_dir, checkpoint_every=4, progress=False, preview_every=0, log_every=1)
-    return cfg
+@pytest.fixture
+def config(small_config):
+    """(out_dir, budget in minutes or None, policy) -> a 40-step run of the small config with that budget."""
+    return lambda out_dir, minutes, policy: small_config(out_dir, 40, time_budget_minutes=minutes, time_budget_policy=policy)
 
 
 def steady_clock():
@@ -51,15 +38,15 @@ def trained(cfg, scene) -> tuple[Trainer, dict]:
     return trainer, trainer.train()
 
 
-def test_the_stop_policy_stops_where_the_budget_is_spent(scene, tmp_path):
-    trainer, summary = trained(config(tmp_path, 5 * SECONDS_PER_STEP / 60, "stop"), scene)
+def test_the_stop_policy_stops_where_the_budget_is_spent(small_scene, config, tmp_path):
+    trainer, summary = trained(config(tmp_path, 5 * SECONDS_PER_STEP / 60, "stop"), small_scene)
     assert summary["stopped_by"] == "time_budget" and summary["iterations"] == 5 and summary["schedule_fit"] is None
     assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == 5
 
 
-def test_a_fitted_run_ends_inside_its_budget_with_its_schedules_over_the_new_length(scene, tmp_path):
+def test_a_fitted_run_ends_inside_its_budget_with_its_schedules_over_the_new_length(small_scene, config, tmp_path):
     budget_s = 15.0
-    trainer, summary = trained(config(tmp_path, budget_s / 60, "fit"), scene)
+    trainer, summary = trained(config(tmp_path, budget_s / 60, "fit"), small_scene)
     # densification stops at 8, so the step time is measured over steps 9-12 (a tenth of the 31 steps left, < 200)
     assert trainer.fit_start() == 9
     expected = 12 + int((0.98 * budget_s - 12 * SECONDS_PER_STEP) / SECONDS_PER_STEP)
@@ -79,14 +66,14 @@ def test_a_fitted_run_ends_inside_its_budget_with_its_schedules_over_the_new_len
     deformation = trainer.optimizers["deformation"]
     assert deformation.schedule(expected, 1.0) == pytest.approx(0.1)  # x0.1 over the run, not over the planned 40
     # a resume keeps the fitted length and does not fit again
-    again = Trainer.from_checkpoint(tmp_path / "checkpoint.pt", scene)
+    again = Trainer.from_checkpoint(tmp_path / "checkpoint.pt", small_scene)
     assert again.config.optim.iterations == expected and again.schedule_fit == summary["schedule_fit"]
 
 
-def test_a_machine_fast_enough_trains_the_planned_run_unchanged(scene, tmp_path):
-    fitted, summary = trained(config(tmp_path / "fit", 60.0 / 60, "fit"), scene)
+def test_a_machine_fast_enough_trains_the_planned_run_unchanged(small_scene, config, tmp_path):
+    fitted, summary = trained(config(tmp_path / "fit", 60.0 / 60, "fit"), small_scene)
     assert summary["schedule_fit"]["iterations"] == 40 and summary["iterations"] == 40
-    plain, _ = trained(config(tmp_path / "plain", None, "fit"), scene)
+    plain, _ = trained(config(tmp_path / "plain", None, "fit"), small_scene)
     for name, value in plain.model.gaussians.params.items():
         assert torch.equal(value, fitted.model.gaussians.params[name]), name
 
