@@ -167,6 +167,12 @@ class TrainConfig:
     backend: RenderBackend = "auto"
     """Rasterizer: cpu (numba kernel), gsplat (CUDA), torch (the readable reference, any device; also switches the
     SSIM loss to its torch form), auto (gsplat on CUDA, cpu on a CPU)."""
+    cpu_torch_threads: Annotated[int, NON_NEGATIVE] = 1
+    """Threads for torch's own operations while a CPU run trains (0: torch's default, one per core); pidg's numba
+    kernels keep theirs (one per core) either way. 1 by default: on the 2-core machine this was measured on, each
+    parallel torch operation paid ~0.1 ms of thread wake-up (OMP_WAIT_POLICY=PASSIVE), more than most of a step's
+    small operations compute, and one thread made the step x1.13 (base) and x1.26 (full method) faster although its
+    matrix products ran x1.3-1.5 slower. Restored when training returns."""
     preset: Preset = field(default="none", metadata={"command_line_default": "auto"})
     """Defaults the other values start from, applied before every other option: cpu (model sizes for a CPU step),
     paper (the published schedule and sizes for the dataset's kind), auto (paper on CUDA, else cpu), none (the

@@ -271,10 +271,14 @@ class Trainer:
         budget = None if cfg.optim.time_budget_minutes is None else 60.0 * cfg.optim.time_budget_minutes
         fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy == "fit"
         stopped_by = None
+        torch_threads = torch.get_num_threads()
         try:
             with _GracefulInterrupt() as interrupt:
                 while self.step < total:
                     t0 = self.clock()
+                    if self.device.type == "cpu" and cfg.cpu_torch_threads:
+                        # every step: numba's thread pool, started by the first kernel, resets OpenMP's count
+                        torch.set_num_threads(cfg.cpu_torch_threads)
                     try:
                         parts = self.train_step()
                     except NonFiniteError as err:
@@ -316,6 +320,7 @@ class Trainer:
                 f"{checkpoint} (step {self.last_good_step}), the state it failed in {failed}"
             ) from err
         finally:
+            torch.set_num_threads(torch_threads)
             bar.close()
             if writer is not None:
                 writer.close()

@@ -11,6 +11,7 @@ from pidg.models.deformation.hash_grid import (
     hash_encode,
     hash_encode_cpu,
     hash_encode_reference,
+    hash_encode_with_smoothness,
     resolve_backend,
     spatial_hash,
 )
@@ -125,6 +126,41 @@ def test_kernel_backward_reads_a_column_block_of_a_wider_gradient(config):
     (gc_k, gt_k), (gc_r, gt_r) = grads
     assert (gt_k - gt_r).abs().max() / gt_r.abs().max() < 1e-4
     assert (gc_k - gc_r).abs().max() / gc_r.abs().max() < 1e-4
+
+
+@pytest.mark.parametrize("config", [MIXED, GRID4D_TEMPORAL], ids=["three_features", "two_features"])
+def test_smoothness_node_matches_the_reference(config):
+    """Grid4D's regulariser on the kernels (one node: the sample's features taken from the pass, N + M points
+    encoded, one table gradient) against the torch path that encodes points, sample and copies separately:
+    features, the term, and the gradients of the table and of the coordinates (through the features only: the
+    sample is detached). Rows repeat and some points lie outside the box."""
+    grid = random_grid(config)
+    pts = hard_points(config, 400)
+    gen = torch.Generator().manual_seed(6)
+    rows = torch.cat([torch.randperm(pts.shape[0], generator=gen)[:60], torch.tensor([5, 5, pts.shape[0] - 1])])
+    jittered = pts[rows] + (torch.rand(rows.shape[0], 3, generator=gen) * 2 - 1) * 0.05
+    upstream = torch.randn(pts.shape[0], grid.out_dim, generator=gen)
+
+    def run(backend):
+        coords = pts.clone().requires_grad_(True)
+        grid.table.grad = None
+        features, term = hash_encode_with_smoothness(coords, jittered, rows, grid.table, grid.layout, backend)
+        ((features * upstream).sum() + 3.0 * term).backward()
+        return features.detach(), term.detach(), coords.grad, grid.table.grad.clone()
+
+    f_k, term_k, gc_k, gt_k = run("cpu")
+    f_r, term_r, gc_r, gt_r = run("torch")
+    assert torch.equal(f_k, hash_encode_cpu(pts, grid.table.detach(), grid.layout))
+    assert (f_k - f_r).abs().max() < 1e-5
+    expected = (hash_encode_reference(jittered, grid.table.detach(), grid.layout)
+                - hash_encode_reference(pts[rows], grid.table.detach(), grid.layout)).square().sum()
+    assert float(term_r) > 0 and torch.allclose(term_k, expected, rtol=1e-5) and torch.allclose(term_r, expected, rtol=1e-5)
+    assert (gt_k - gt_r).abs().max() / gt_r.abs().max() < 1e-4
+    assert (gc_k - gc_r).abs().max() / gc_r.abs().max() < 1e-4
+    # the term's own table gradient is there (the features' alone would differ)
+    grid.table.grad = None
+    (hash_encode(pts, grid.table, grid.layout, "cpu") * upstream).sum().backward()
+    assert (grid.table.grad - gt_k).abs().max() / gt_k.abs().max() > 1e-3
 
 
 def test_outside_points_clamp_onto_the_box():

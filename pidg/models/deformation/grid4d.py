@@ -27,16 +27,15 @@ numba kernel on the CPU, its torch reference elsewhere).
 Regulariser (Grid4D): on a random ``reg_fraction`` of the points of a forward pass called with ``regularize=True``,
 perturb the grid coordinates by uniform noise and penalise the squared change of the spatial and temporal grid
 features; the pass returns the term in ``DeformedGaussians.regularization``.
-The sampled points and their perturbed copies are encoded in the same kernel call as the forward pass's points
-(one call per grid, one table gradient), and the term is evaluated right there. Gathering the sample's features
-from the forward pass instead makes autograd build and add a dense zero-filled [N, 192] gradient (measured ~25 ms
-of a 300 ms CPU step); separate calls for the sample add a table-sized gradient sum per grid. The joint features
-are split with ``split`` (its backward is one concatenation), not sliced (each slice's backward zero-fills a
-full-size gradient).
+Each grid computes its features and its share of the term in one call (``HashGrid.with_smoothness``): the
+sample's own features are its rows of the pass's features, only the perturbed copies are encoded besides the
+points, and on the CPU one autograd node returns both and writes one table gradient. (Before: the points, the
+sample and its copies went through one encoder call whose output was split, N + 2M points per kernel and a
+concatenation of the pieces' gradients in the backward; separate calls for the sample would add a table-sized
+gradient sum per grid, and gathering the sample through autograd a dense zero-filled gradient of the features.)
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Annotated
 
@@ -152,15 +151,13 @@ class Grid4D(DeformationModel):
         return self.grid_xyz(u_xyz)
 
     def encode_temporal(self, u_xyz: Tensor, u_t: Tensor) -> Tensor:
-        x, y, z = u_xyz.unbind(-1)
-        return torch.cat(
-            [
-                self.grid_xyt(torch.stack([x, y, u_t], dim=-1)),
-                self.grid_yzt(torch.stack([y, z, u_t], dim=-1)),
-                self.grid_xzt(torch.stack([x, z, u_t], dim=-1)),
-            ],
-            dim=-1,
-        )
+        inputs = _temporal_inputs(torch.cat([u_xyz, u_t[:, None]], dim=-1))
+        return torch.cat([grid(coords) for grid, coords in zip(self.temporal_grids, inputs)], dim=-1)
+
+    @property
+    def temporal_grids(self) -> tuple[HashGrid, HashGrid, HashGrid]:
+        """G_xyt, G_yzt, G_xzt, in the order of ``TEMPORAL_AXES``."""
+        return self.grid_xyt, self.grid_yzt, self.grid_xzt
 
     def attention(self, spatial_features: Tensor) -> Tensor:
         """Directional attention a = 2 sigmoid(f_s(.)) - 1, in (-1, 1)."""
@@ -238,12 +235,23 @@ class Grid4D(DeformationModel):
         if not (spatial_w or temporal_w):
             return self.encode_spatial(u_xyz), self.encode_temporal(u_xyz, u_t), None
         rows = torch.randperm(n, device=u_xyz.device)[:m]
-        spatial, spatial_term = _encode_with_smoothness(self.encode_spatial, u_xyz, rows, cfg.reg_spatial_perturb, spatial_w)
-        temporal, temporal_term = _encode_with_smoothness(
-            lambda u4: self.encode_temporal(u4[:, :3], u4[:, 3]), torch.cat([u_xyz, u_t[:, None]], dim=-1), rows,
-            cfg.reg_temporal_perturb, temporal_w,
-        )
-        return spatial, temporal, spatial_term + temporal_term
+        term = u_xyz.new_zeros(())
+        if spatial_w:
+            jittered = u_xyz[rows].detach() + _uniform_like(u_xyz[:m], cfg.reg_spatial_perturb)
+            spatial, change = self.grid_xyz.with_smoothness(u_xyz, jittered, rows)
+            term = term + spatial_w * change / m
+        else:
+            spatial = self.encode_spatial(u_xyz)
+        if temporal_w:
+            u4 = torch.cat([u_xyz, u_t[:, None]], dim=-1)
+            jittered4 = u4[rows].detach() + _uniform_like(u4[:m], cfg.reg_temporal_perturb)
+            pairs = [grid.with_smoothness(coords, jittered, rows) for grid, coords, jittered
+                     in zip(self.temporal_grids, _temporal_inputs(u4), _temporal_inputs(jittered4))]
+            temporal = torch.cat([features for features, _ in pairs], dim=-1)
+            term = term + temporal_w * sum(change for _, change in pairs) / m
+        else:
+            temporal = self.encode_temporal(u_xyz, u_t)
+        return spatial, temporal, term
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         grids = [g.table for g in (self.grid_xyz, self.grid_xyt, self.grid_yzt, self.grid_xzt)]
@@ -253,19 +261,16 @@ class Grid4D(DeformationModel):
         return {k: v for k, v in groups.items() if v}
 
 
-def _encode_with_smoothness(
-    encode: Callable[[Tensor], Tensor], points: Tensor, rows: Tensor, half_widths: tuple[float, ...], weight: float
-) -> tuple[Tensor, Tensor]:
-    """(encode(points) [N, F], weight * mean over the sampled ``rows`` of the summed squared feature change under
-    uniform noise of ``half_widths``). The sample and its perturbed copy go through the same ``encode`` call as the
-    points, and are separated with ``split`` (see the module docstring); weight 0 skips the sample."""
-    if not weight:
-        return encode(points), points.new_zeros(())
-    sample = points[rows].detach()
-    jittered = sample + _uniform_like(sample, half_widths)
-    m = sample.shape[0]
-    features, base, moved = encode(torch.cat([points, sample, jittered])).split([points.shape[0], m, m])
-    return features, weight * (moved - base).square().sum(dim=-1).mean()
+#: The columns of (x, y, z, t) that G_xyt, G_yzt and G_xzt read, in this order.
+TEMPORAL_AXES = ((0, 1, 3), (1, 2, 3), (0, 2, 3))
+_TEMPORAL_COLUMNS = [c for axes in TEMPORAL_AXES for c in axes]
+
+
+def _temporal_inputs(u4: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The three temporal grids' inputs [N, 3] from points [N, 4] (x y z t): views of one gathered [N, 9] tensor
+    (one op instead of a stack per grid; the kernels read strided inputs)."""
+    columns = torch.tensor(_TEMPORAL_COLUMNS, device=u4.device)
+    return tuple(u4.index_select(1, columns).split(3, dim=-1))  # type: ignore[return-value]
 
 
 def _uniform_like(x: Tensor, half_widths: tuple[float, ...]) -> Tensor:

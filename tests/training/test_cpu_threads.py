@@ -1,0 +1,26 @@
+"""A CPU run's torch thread count (``TrainConfig.cpu_torch_threads``) holds during its steps and no longer."""
+import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
+
+import dataclasses
+
+import pytest
+import torch
+
+from pidg.training.trainer import Trainer
+
+
+@pytest.mark.parametrize("threads", [1, 0])
+def test_cpu_steps_run_torch_on_the_configured_threads_and_training_restores_them(small_scene, small_config, tmp_path, threads):
+    """``cpu_torch_threads`` holds during every step (0: torch's own count, untouched); train() gives the caller's
+    count back when it returns."""
+    trainer = Trainer(dataclasses.replace(small_config(tmp_path, 3), cpu_torch_threads=threads), small_scene)
+    seen: list[int] = []
+    step = trainer.train_step
+    trainer.train_step = lambda: (seen.append(torch.get_num_threads()), step())[1]  # type: ignore[method-assign]
+    caller = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        trainer.train()
+        assert seen == [threads or 3] * 3 and torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(caller)
