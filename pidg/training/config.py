@@ -171,7 +171,7 @@ class TrainConfig:
     """Threads for torch's own operations while a CPU run trains (0: torch's default, one per core); pidg's numba
     kernels keep theirs (one per core) either way. 1 by default: on the 2-core machine this was measured on, each
     parallel torch operation paid ~0.1 ms of thread wake-up (OMP_WAIT_POLICY=PASSIVE), more than most of a step's
-    small operations compute, and one thread made the step x1.13 (base) and x1.26 (full method) faster although its
+    small operations compute, and one thread made the step x1.10 (base) and x1.16 (full method) faster although its
     matrix products ran x1.3-1.5 slower. Restored when training returns."""
     preset: Preset = field(default="none", metadata={"command_line_default": "auto"})
     """Defaults the other values start from, applied before every other option: cpu (model sizes for a CPU step),

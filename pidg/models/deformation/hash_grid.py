@@ -426,9 +426,16 @@ def _f32_rows(t: Tensor) -> np.ndarray:
     return t.numpy() if t.dtype == torch.float32 and t.stride(-1) == 1 else _f32(t)
 
 
-def _unit_soa(coords: Tensor) -> np.ndarray:
-    """Clamped coordinates as float32 [3, N], the layout the lane loops read."""
-    return _f32(coords.detach().to(torch.float32).clamp(0.0, 1.0).T)
+def _unit_soa(*blocks: Tensor) -> np.ndarray:
+    """The blocks' points [Ni, 3], clamped, as one float32 [3, N1 + N2 + ...] array, the layout the lane loops read
+    (numpy: no torch operation, whose thread wake-up would cost more than the copy)."""
+    u = np.empty((3, sum(b.shape[0] for b in blocks)), dtype=np.float32)
+    start = 0
+    for b in blocks:
+        end = start + b.shape[0]
+        np.clip(b.detach().to(torch.float32).numpy().T, 0.0, 1.0, out=u[:, start:end])
+        start = end
+    return u
 
 
 class _HashEncodeCPU(torch.autograd.Function):
@@ -526,17 +533,6 @@ def _smoothness_gradient(grad_main, change, scale, rows, g_all):  # pragma: no c
             g_all[rows[i], f] -= g
 
 
-def _unit_soa_blocks(*blocks: Tensor) -> np.ndarray:
-    """The blocks' points, clamped, as one float32 [3, N1 + N2 + ...] array (numpy: no torch op per block)."""
-    u = np.empty((3, sum(b.shape[0] for b in blocks)), dtype=np.float32)
-    start = 0
-    for b in blocks:
-        end = start + b.shape[0]
-        np.clip(b.detach().to(torch.float32).numpy().T, 0.0, 1.0, out=u[:, start:end])
-        start = end
-    return u
-
-
 class _HashEncodeSmoothCPU(torch.autograd.Function):
     """``hash_encode_with_smoothness`` on the numba kernels, as one autograd node.
 
@@ -552,7 +548,7 @@ class _HashEncodeSmoothCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coords: Tensor, jittered: Tensor, rows: Tensor, table: Tensor, layout: GridLayout):  # type: ignore[override]
         n = coords.shape[0]
-        u = _unit_soa_blocks(coords, jittered)  # [3, N + M]
+        u = _unit_soa(coords, jittered)  # [3, N + M]
         out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
         _encode_forward(u, _f32(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
         rows_np = rows.detach().cpu().numpy().astype(np.int64)
