@@ -330,6 +330,8 @@ def read_blender(config: DataConfig) -> SceneData:
                     gap * span,
                 )
 
+    layout = blender_layout(root)
+    resample = config.resample_for(layout)
     mask_dir = root / "mask"
     use_masks = config.load_masks and mask_dir.is_dir()
     depth_dir = root / "depth"
@@ -351,13 +353,14 @@ def read_blender(config: DataConfig) -> SceneData:
                     depth_path=_depth_path(depth_dir, f) if has_depth_dir else None,
                 )
             )
-        splits[split] = load_frames(specs, config, desc=f"{root.name}/{split}")
+        splits[split] = load_frames(specs, config, desc=f"{root.name}/{split}", resample=resample)
 
     points = read_ply_points(root / "points3d.ply") if (root / "points3d.ply").is_file() else None
     # Bounds from all training cameras (all frames of every split if there is no training file).
     bound_frames = json_frames["train"] if "train" in json_frames else [f for fs in json_frames.values() for f in fs]
     centers = torch.stack([f.c2w[:3, 3] for f in bound_frames])
-    info["layout"] = blender_layout(root)
+    info["layout"] = layout
+    info["resample"] = resample
     info["masks"] = use_masks
     # True only when some loaded frame has a depth map: a depth/ folder whose names match no frame gives none.
     info["depth_maps"] = any(frame.depth is not None for frames in splits.values() for frame in frames)

@@ -216,7 +216,8 @@ def read_hypernerf(config: DataConfig) -> SceneData:
             specs.append(
                 FrameSpec(item, image_path, t, lambda w, h, c=cam, p=image_path: fit_camera_to_image(c, w, h, p))
             )
-        splits[split] = load_frames(specs, config, desc=f"{root.name}/{split}")
+        resample = config.resample_for("hypernerf")
+        splits[split] = load_frames(specs, config, desc=f"{root.name}/{split}", resample=resample)
 
     points = _read_points(root / "points.npy", center, scale)
     centers = torch.stack([c.camera_center for c in train_cameras.values()])

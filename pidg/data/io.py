@@ -3,7 +3,8 @@
 A reader describes each frame it wants as a :class:`FrameSpec` (image file, time, how to build its camera,
 optional mask file); :func:`load_frames` decodes the images on a thread pool (PIL releases the GIL while
 decoding and resampling, numpy during array arithmetic, so threads overlap without the start-up and copying cost
-of processes), composites RGBA on the background, resizes, and returns :class:`~pidg.data.scene.Frame` objects.
+of processes), composites RGBA on the background and resizes (in that order, or the other way round by D-NeRF's
+protocol: ``DataConfig.resample``), and returns :class:`~pidg.data.scene.Frame` objects.
 """
 
 from __future__ import annotations
@@ -20,12 +21,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
 from tqdm.auto import tqdm
 
-from pidg.data.scene import DataConfig, DatasetError, Frame
+from pidg.data.scene import DataConfig, DatasetError, Frame, Resample
 from pidg.render.camera import Camera
 
 logger = logging.getLogger(__name__)
@@ -156,17 +158,24 @@ _UNSCALED_MODES = {"F": "32-bit float", "I": "32-bit integer"}
 _ALPHA_MODES = ("RGBA", "LA", "PA", "La", "RGBa")
 
 
-def decode_rgb(path: Path, background: tuple[float, float, float]) -> np.ndarray:
+def decode_rgb(path: Path, background: tuple[float, float, float], size: tuple[int, int] | None = None) -> np.ndarray:
     """[H, W, 3] float32 in [0, 255]; an alpha channel is composited: rgb * a + background * (1 - a).
 
-    Kept in the 0..255 scale (not 0..1) to save a pass over the pixels; the in-place arithmetic
+    ``size`` (width, height): shrink the image there by the D-NeRF protocol (``DataConfig.resample`` area-rgba): the
+    area average of the straight RGBA, then compositing (a 16-bit gray image, whose transparency is a colour key, is
+    composited first). Kept in the 0..255 scale (not 0..1) to save a pass over the pixels; the in-place arithmetic
     (rgb - bg) * a + bg is about 5x faster than the broadcast expression on an 800x800 frame.
     16-bit PNGs: PIL already hands RGB(A) and gray+alpha over with 8-bit samples (the high byte of each), but plain
     16-bit gray as mode I;16 ("I" in older Pillow), which is scaled here: PIL's own conversion would clip it at 255.
     """
-    image = _open_image(path)
+    return _decode_opened(_open_image(path), path, background, size)
+
+
+def _decode_opened(image: Image.Image, path: Path, background: tuple[float, float, float], size: tuple[int, int] | None) -> np.ndarray:
+    """:func:`decode_rgb` of an opened image."""
     if image.mode.startswith("I;16") or (image.mode == "I" and image.format == "PNG"):  # PNG has no 32-bit gray
-        return _decode_gray16(image, path, background)
+        rgb = _decode_gray16(image, path, background)
+        return rgb if size is None else _area_resize(rgb, size)
     if image.mode in _UNSCALED_MODES:
         raise DatasetError(
             path,
@@ -180,11 +189,20 @@ def decode_rgb(path: Path, background: tuple[float, float, float]) -> np.ndarray
         except ValueError as e:
             raise DatasetError(path, f"cannot convert image mode {image.mode!r} to RGB: {e}") from None
     array = np.asarray(image)
+    if has_alpha and image.getchannel("A").getbbox() is None:  # C-speed scan, stops at the first nonzero alpha
+        raise DatasetError(path, "alpha is zero everywhere: the frame is pure background, nothing to learn from")
+    if size is not None:
+        small = _area_resize(array.astype(np.float32), size)
+        return _composite_straight(small[..., :3], small[..., 3:4] * (1.0 / 255.0), background) if has_alpha else small
     if has_alpha:
-        if image.getchannel("A").getbbox() is None:  # C-speed scan, stops at the first nonzero alpha
-            raise DatasetError(path, "alpha is zero everywhere: the frame is pure background, nothing to learn from")
         return composite_rgba_float(array, background)
     return array[..., :3].astype(np.float32)
+
+
+def _area_resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """OpenCV's area average (INTER_AREA: each output pixel the mean of the input area it covers) to (width, height),
+    channels kept, float32."""
+    return np.ascontiguousarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA)).reshape(size[1], size[0], image.shape[2])
 
 
 def _decode_gray16(image: Image.Image, path: Path, background: tuple[float, float, float]) -> np.ndarray:
@@ -205,9 +223,13 @@ def _decode_gray16(image: Image.Image, path: Path, background: tuple[float, floa
 
 def composite_rgba_float(rgba: np.ndarray, background: tuple[float, float, float]) -> np.ndarray:
     """RGBA uint8 [H, W, 4] -> RGB float32 in [0, 255] on ``background``: (rgb - bg) * a + bg, in place."""
-    rgb = rgba[..., :3].astype(np.float32)
     alpha = rgba[..., 3:4].astype(np.float32)
     alpha *= 1.0 / 255.0
+    return _composite_straight(rgba[..., :3].astype(np.float32), alpha, background)
+
+
+def _composite_straight(rgb: np.ndarray, alpha: np.ndarray, background: tuple[float, float, float]) -> np.ndarray:
+    """Straight colour [H, W, 3] float32 in [0, 255] with alpha [H, W, 1] in [0, 1] on ``background``, in ``rgb``."""
     bg = np.asarray(background, np.float32) * 255.0
     rgb -= bg
     rgb *= alpha
@@ -299,15 +321,19 @@ def _aligned_map(path: Path | None, decode: Callable[[Path], np.ndarray], what: 
     return values
 
 
-def _load_one(spec: FrameSpec, config: DataConfig) -> tuple[Frame, tuple[int, int]]:
-    rgb = decode_rgb(spec.image_path, config.background_rgb)
-    height, width = rgb.shape[:2]
+def _load_one(spec: FrameSpec, config: DataConfig, resample: Resample) -> tuple[Frame, tuple[int, int]]:
+    image = _open_image(spec.image_path)
+    width, height = image.size
+    tw, th = config.target_size(width, height)
+    shrink = (tw, th) != (width, height)
+    area = shrink and resample == "area-rgba"  # shrunk while decoding: the area average comes before compositing
+    rgb = _decode_opened(image, spec.image_path, config.background_rgb, (tw, th) if area else None)
     camera = spec.make_camera(width, height)
     mask = _aligned_map(spec.mask_path, decode_mask, "mask", width, height)
     depth = _aligned_map(spec.depth_path, decode_depth, "depth map", width, height)
-    tw, th = config.target_size(width, height)
-    if (tw, th) != (width, height):
-        rgb = resize_rgb(rgb, tw, th)
+    if shrink:
+        if not area:
+            rgb = resize_rgb(rgb, tw, th)
         camera = camera.resized(tw, th)
         mask = resize_mask(mask, tw, th) if mask is not None else None
         depth = resize_depth(depth, tw, th) if depth is not None else None
@@ -318,14 +344,17 @@ def _load_one(spec: FrameSpec, config: DataConfig) -> tuple[Frame, tuple[int, in
     return Frame(camera, spec.time, image_u8, mask_t, spec.name, spec.image_path, depth_t), (width, height)
 
 
-def load_frames(specs: Sequence[FrameSpec], config: DataConfig, desc: str) -> list[Frame]:
-    """Decode all frames of one split (in parallel, with a progress bar) and check they share one size."""
+def load_frames(specs: Sequence[FrameSpec], config: DataConfig, desc: str, resample: Resample = "lanczos") -> list[Frame]:
+    """Decode all frames of one split (in parallel, with a progress bar) and check they share one size; ``resample``:
+    ``DataConfig.resample`` as the dataset's loader resolved it (not auto)."""
+    if resample == "auto":
+        raise ValueError("load_frames: resolve DataConfig.resample 'auto' for the dataset first")
     workers = config.num_workers or min(8, os.cpu_count() or 1)
     start = time.perf_counter()
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         results = list(
             tqdm(
-                pool.map(lambda s: _load_one(s, config), specs),
+                pool.map(lambda s: _load_one(s, config, resample), specs),
                 total=len(specs),
                 desc=desc,
                 unit="img",
@@ -344,13 +373,14 @@ def load_frames(specs: Sequence[FrameSpec], config: DataConfig, desc: str) -> li
                 )
         frame = results[0][0]
         logger.info(
-            "%s: %d frames of %dx%d (files %dx%d) in %.1f s",
+            "%s: %d frames of %dx%d (files %dx%d%s) in %.1f s",
             desc,
             len(results),
             frame.width,
             frame.height,
             first_size[0],
             first_size[1],
+            f", shrunk by {resample}" if (frame.width, frame.height) != first_size else "",
             time.perf_counter() - start,
         )
     return [frame for frame, _ in results]

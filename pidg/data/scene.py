@@ -29,6 +29,7 @@ logger = logging.getLogger(__name__)
 
 Background = Literal["white", "black"]
 TimeSource = Literal["json", "frame_number"]
+Resample = Literal["auto", "lanczos", "area-rgba"]
 HyperNerfSplit = Literal["vrig", "interp"]
 
 #: Splits a reader may return. HyperNeRF's ``val_ids`` (the held-out views) become ``"test"``.
@@ -71,6 +72,12 @@ class DataConfig:
     """Background the RGBA images are composited on and the renders are drawn over (the PIDG paper: black)."""
     downscale: Annotated[float | tuple[int, int], POSITIVE] = 1.0
     """Image size: a factor (2 halves both sides) or WIDTHxHEIGHT, e.g. 400x400 for the NeRF-era D-NeRF protocol."""
+    resample: Resample = "auto"
+    """How images are shrunk to ``downscale``. lanczos: composited on the background at full size, then a Lanczos
+    filter (sharp). area-rgba: the protocol of D-NeRF's and TiNeuVox's loaders, whose published 400x400 tables are
+    scored against it: OpenCV's area average of the straight (not premultiplied) RGBA, then composited on the
+    background. auto: area-rgba for D-NeRF scenes (so that their PSNR compares with those tables), lanczos for the
+    others."""
     time_source: TimeSource = "json"
     """Blender-style data: json uses each frame's time; frame_number derives it from the number at the end of the
     file name, normalised over all splits (the Dry Ice scene's json times are normalised per split)."""
@@ -117,6 +124,13 @@ class DataConfig:
     @property
     def background_rgb(self) -> tuple[float, float, float]:
         return (1.0, 1.0, 1.0) if self.background == "white" else (0.0, 0.0, 0.0)
+
+    def resample_for(self, layout: str) -> Resample:
+        """``resample`` for a scene of this layout (``SceneData.info["layout"]``): auto is D-NeRF's protocol
+        (area-rgba) on D-NeRF scenes, whose published tables were scored on images shrunk so, lanczos elsewhere."""
+        if self.resample != "auto":
+            return self.resample
+        return "area-rgba" if layout == "dnerf" else "lanczos"
 
     def target_size(self, width: int, height: int) -> tuple[int, int]:
         """The (width, height) an image of the given size is resized to."""
