@@ -200,6 +200,7 @@ def read_hypernerf(config: DataConfig) -> SceneData:
         return camera_from_nerfies_json(read_json(path), path, center, scale, image_scale)
 
     wanted = {"train": train_ids, "test": test_ids}
+    resample = config.resample_for("hypernerf")
     splits = {}
     train_cameras = {item: camera(item) for item in train_ids}  # all of them: the bounds use every training view
     for split in config.splits:
@@ -216,7 +217,6 @@ def read_hypernerf(config: DataConfig) -> SceneData:
             specs.append(
                 FrameSpec(item, image_path, t, lambda w, h, c=cam, p=image_path: fit_camera_to_image(c, w, h, p))
             )
-        resample = config.resample_for("hypernerf")
         splits[split] = load_frames(specs, config, desc=f"{root.name}/{split}", resample=resample)
 
     points = _read_points(root / "points.npy", center, scale)
