@@ -200,9 +200,9 @@ def _decode_opened(image: Image.Image, path: Path, background: tuple[float, floa
 
 
 def _area_resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """OpenCV's area average (INTER_AREA: each output pixel the mean of the input area it covers) to (width, height),
-    channels kept, float32."""
-    return np.ascontiguousarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA)).reshape(size[1], size[0], image.shape[2])
+    """OpenCV's area average (INTER_AREA: each output pixel the mean of the input area it covers) of a float32
+    [H, W, 3 or 4] image to (width, height)."""
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
 def _decode_gray16(image: Image.Image, path: Path, background: tuple[float, float, float]) -> np.ndarray:
@@ -344,7 +344,7 @@ def _load_one(spec: FrameSpec, config: DataConfig, resample: Resample) -> tuple[
     return Frame(camera, spec.time, image_u8, mask_t, spec.name, spec.image_path, depth_t), (width, height)
 
 
-def load_frames(specs: Sequence[FrameSpec], config: DataConfig, desc: str, resample: Resample = "lanczos") -> list[Frame]:
+def load_frames(specs: Sequence[FrameSpec], config: DataConfig, desc: str, *, resample: Resample) -> list[Frame]:
     """Decode all frames of one split (in parallel, with a progress bar) and check they share one size; ``resample``:
     ``DataConfig.resample`` as the dataset's loader resolved it (not auto)."""
     if resample == "auto":
