@@ -284,3 +284,19 @@ def test_a_tile_list_too_long_for_the_kernel_is_named(monkeypatch):
     monkeypatch.setattr(rc, "_MAX_TILE_LIST", 5)
     with pytest.raises(ValueError, match=r"composite_cpu: a tile holds \d+ Gaussians.*exact below 5"):
         render(scene, camera, "cpu")
+
+
+def test_depth_order_is_a_stable_depth_sort():
+    """The 64-bit-key sort of float32 depths equals numpy's stable argsort (ties in index order, negatives, inf),
+    and float64 depths that round to the same float32 keep their true order."""
+    import numpy as np
+
+    from pidg.render.rasterize_cpu import depth_order
+
+    rng = np.random.default_rng(0)
+    depths = np.concatenate([rng.normal(size=500), rng.integers(0, 5, size=500), [np.inf, -np.inf, 1e-30]]).astype(np.float32)
+    indices = np.nonzero(rng.random(depths.size) > 0.3)[0]
+    expected = indices[np.argsort(depths[indices], kind="stable")]
+    assert np.array_equal(depth_order(depths, indices), expected)
+    close = np.array([1.0 + 1e-12, 1.0], dtype=np.float64)  # equal in float32
+    assert depth_order(close, np.arange(2)).tolist() == [1, 0]
