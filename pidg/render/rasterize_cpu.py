@@ -219,7 +219,7 @@ def _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, k_from
     """Copy the tile's Gaussians k_from .. k_to - 1 into contiguous local arrays, with their per-Gaussian row bounds.
 
     Filled on demand: pixels saturate long before the end of a crowded tile's list (at a quarter of it on the
-    render bench's case b), and the table's logs, roots and divisions cost as much as compositing. The table has
+    render bench's case b, where filling whole lists took about a third of the forward pass). The table has
     room for whole cull blocks; columns past the tile's list are padding that reaches no row, so a block needs no
     tail test. The caller allocates the arrays: arrays *returned* from an inlined function cost a 2.5x slowdown
     of the lane loops (measured), apparently because the compiler can no longer prove they do not alias.

@@ -274,6 +274,52 @@ def test_kernel_exp_matches_numpy_over_its_domain():
     assert np.allclose(at_powers, 2.0 ** -k, rtol=5e-7, atol=0)
 
 
+def test_row_cull_never_drops_a_gaussian_that_reaches_the_row():
+    """The compositor's per-row cull against a brute-force alpha at every pixel centre of the row: a Gaussian whose
+    alpha reaches 1/255 at some pixel must be kept (the kernel skips the others), and the test is tight enough to
+    drop most of those that do not reach the row."""
+    import numpy as np
+
+    from pidg.render.projection import ALPHA_MIN
+    from pidg.render.rasterize_cpu import CULL_BLOCK, _cull_block, _fill_tile, _padded
+
+    rng = np.random.default_rng(3)
+    n, x_lo, lanes = 300, 32, 16
+    means2d = np.stack([rng.uniform(x_lo - 20, x_lo + 36, n), rng.uniform(-20, 36, n)], axis=1).astype(np.float32)
+    sigma = rng.uniform(0.3, 6.0, (n, 2))
+    angle = rng.uniform(0, np.pi, n)
+    c, s = np.cos(angle), np.sin(angle)
+    cov = np.empty((n, 2, 2))
+    cov[:, 0, 0] = c * c * sigma[:, 0] ** 2 + s * s * sigma[:, 1] ** 2
+    cov[:, 1, 1] = s * s * sigma[:, 0] ** 2 + c * c * sigma[:, 1] ** 2
+    cov[:, 0, 1] = cov[:, 1, 0] = c * s * (sigma[:, 0] ** 2 - sigma[:, 1] ** 2)
+    inv = np.linalg.inv(cov)
+    conics = np.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], axis=1).astype(np.float32)
+    opacities = rng.uniform(0.01, 0.999, n).astype(np.float32)
+    feats = np.zeros((n, 1), np.float32)
+    table = np.empty((12, _padded(n)), np.float32)
+    _fill_tile(means2d, conics, opacities, feats, np.arange(n, dtype=np.int64), 0, x_lo, 0, _padded(n), table,
+               np.empty((n, 1), np.float32))
+    misses, hits = np.empty(CULL_BLOCK, np.float32), np.empty(CULL_BLOCK, np.int64)
+    px = x_lo + np.arange(lanes) + 0.5
+    kept_total = reaching_total = 0
+    for py in range(16):
+        kept = set()
+        for k0 in range(0, n, CULL_BLOCK):
+            count = _cull_block(table, k0, n, np.float32(py + 0.5), lanes, misses, hits)
+            kept.update(int(k) for k in hits[:count])
+        dx = means2d[:, 0:1].astype(np.float64) - px[None, :]
+        dy = means2d[:, 1:2].astype(np.float64) - (py + 0.5)
+        a, b, cc = (conics[:, i:i + 1].astype(np.float64) for i in range(3))
+        power = -0.5 * (a * dx * dx + cc * dy * dy) - b * dx * dy
+        alpha = np.minimum(0.99, opacities[:, None] * np.exp(power))
+        reaching = set(np.nonzero((alpha >= ALPHA_MIN * (1 + 1e-4)).any(axis=1))[0].tolist())
+        assert reaching <= kept, f"row {py}: reaching Gaussians culled: {sorted(reaching - kept)[:5]}"
+        kept_total, reaching_total = kept_total + len(kept), reaching_total + len(reaching)
+    assert reaching_total > 100  # the scene does reach the rows
+    assert kept_total < 1.1 * reaching_total and kept_total < 0.8 * 16 * n  # and the cull drops the rest
+
+
 def test_a_tile_list_too_long_for_the_kernel_is_named(monkeypatch):
     """The kernel keeps a pixel's end in its tile's list as a float32 lane value (exact below 2^24): a longer list
     is refused with one line instead of rounding silently (shown here with the limit lowered to 5)."""
