@@ -68,8 +68,8 @@ def test_auto_takes_the_dnerf_protocol_on_dnerf_scenes_only(tmp_path, synth):
         stored = frame.image_u8.numpy().astype(np.float64)
         assert np.abs(stored - dnerf_protocol(frames[k], 2, 1.0)).max() <= 0.5 + 1e-3  # rounded to 8 bits
         assert (frame.width, frame.height) == (6, 4)
-    lanczos = load_scene(DataConfig(dnerf, background="white", downscale=2, resample="lanczos", progress=False))
-    assert lanczos.info["resample"] == "lanczos"
-    assert not np.array_equal(lanczos.train[0].image_u8.numpy(), scene.train[0].image_u8.numpy())
+    lanczos_scene = load_scene(DataConfig(dnerf, background="white", downscale=2, resample="lanczos", progress=False))
+    assert lanczos_scene.info["resample"] == "lanczos"
+    assert not np.array_equal(lanczos_scene.train[0].image_u8.numpy(), scene.train[0].image_u8.numpy())
     pidg_scene = synth.make_blender(tmp_path / "pidg", n_train=2, n_test=1, width=12, height=8, masks=True)
     assert load_scene(DataConfig(pidg_scene, downscale=2, progress=False)).info["resample"] == "lanczos"
