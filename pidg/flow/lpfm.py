@@ -160,7 +160,8 @@ def sample_tiles(valid: Tensor, fraction: float, generator: torch.Generator, til
 def depth_from_render(render: RenderOutput, min_alpha: float = OPAQUE_ALPHA) -> Tensor:
     """Expected depth [H, W] of a render (frame t+1, camera t+1), 0 (= unknown) where alpha < ``min_alpha``:
     half-transparent pixels mix foreground and background depths, and empty ones have none."""
-    return render.opaque_depth(min_alpha).detach()
+    with torch.no_grad():  # kept, never differentiated: recording the graph of its full-image operations costs
+        return render.opaque_depth(min_alpha)
 
 
 def total_flow_target(pair: FlowPair, config: FlowConfig) -> FlowTarget:

@@ -17,7 +17,7 @@ from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
 from pidg.render.projection import Projection, project_gaussians, tile_grid
 from pidg.render.projection_cpu import project_and_shade_cpu
-from pidg.render.rasterize_cpu import composite_cpu
+from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu
 from pidg.render.rasterize_gsplat import rasterize_gsplat
 from pidg.render.rasterize_torch import channels_below, composite_reference
 from pidg.render.sh import sh_to_rgb
@@ -94,8 +94,9 @@ def tiles_touched(pixels: Tensor, tile_size: int = TILE_SIZE) -> Tensor:
     """[tiles_y, tiles_x] bool: the rasterizer's tiles that hold a True pixel of ``pixels`` [H, W] (bool)."""
     height, width = pixels.shape
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    padded = F.pad(pixels.to(torch.float32), (0, tiles_x * tile_size - width, 0, tiles_y * tile_size - height))
-    return padded.reshape(tiles_y, tile_size, tiles_x, tile_size).amax(dim=(1, 3)) > 0
+    padded = F.pad(pixels.to(torch.bool), (0, tiles_x * tile_size - width, 0, tiles_y * tile_size - height))
+    # two any() passes, the contiguous axis first: a third of the time of one float amax over both axes
+    return padded.reshape(tiles_y, tile_size, tiles_x, tile_size).any(dim=3).any(dim=1)
 
 
 def feature_tile_channels(feature_pixels: Tensor, always: int, n_features: int, tile_size: int = TILE_SIZE) -> Tensor:
@@ -188,13 +189,17 @@ def rasterize(
         proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size,
         tile_channels,
     )
-    # split, not sliced: each slice's backward fills a zero gradient of the whole image (measured 9 ms of a step)
-    colour, depth, extra = image.split([3, 1, n_feat], dim=-1)
-    rgb = colour + (1.0 - alpha).unsqueeze(-1) * bg
+    if which == "cpu" and image.dtype == torch.float32 and not bg.requires_grad:
+        rgb, depth, extra = finish_image_cpu(image, alpha, bg)  # the lines below as one numba pass
+    else:
+        # split, not sliced: each slice's backward fills a zero gradient of the whole image (measured 9 ms of a step)
+        colour, depth, extra = image.split([3, 1, n_feat], dim=-1)
+        rgb = colour + (1.0 - alpha).unsqueeze(-1) * bg
+        depth = depth.squeeze(-1)
     return RenderOutput(
         rgb=rgb,
         alpha=alpha,
-        depth=depth.squeeze(-1),
+        depth=depth,
         features=extra if n_feat else None,
         means2d=proj.means2d,
         radii=proj.radii,

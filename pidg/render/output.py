@@ -48,4 +48,8 @@ class RenderOutput:
 
     def opaque_depth(self, min_alpha: float = OPAQUE_ALPHA) -> Tensor:
         """Expected depth [H, W] where alpha >= ``min_alpha``, else 0 (= unknown): the depth map a sensor would give."""
-        return torch.where(self.alpha >= min_alpha, self.depth_normalized(), torch.zeros_like(self.depth))
+        if min_alpha <= 0:
+            raise ValueError(f"opaque_depth: min_alpha must be > 0, got {min_alpha}")
+        # a product with the mask rather than torch.where (x4 slower on a CPU): the clamp keeps the masked-out
+        # quotients finite, so they multiply to exact zeros, with zero gradients
+        return self.depth / self.alpha.clamp_min(min_alpha) * (self.alpha >= min_alpha)

@@ -20,6 +20,8 @@ Pipeline, with no Python loop over Gaussians:
      per (tile, Gaussian) intersection, stored at that intersection's slot in Gaussian-major order, so that
      ``_reduce_per_gaussian`` sums contiguous rows per Gaussian: no atomics, and the result is deterministic
      whatever the thread schedule.
+  4. ``finish_image_cpu``: the composited channels become rgb over the background, depth and the feature channels,
+     each a contiguous array, in one pass; its backward assembles the image's gradient in one pass too.
 Arithmetic is float32 like gsplat (inputs are converted; outputs come back in the input dtype), with the
 exp approximation accurate to 5e-7 relative; the torch reference is the float64-exact implementation.
 """
@@ -551,6 +553,78 @@ class _CompositeCPU(torch.autograd.Function):
         _reduce_per_gaussian(isect_grads, bins.gauss_offsets, per_gauss)
         g = torch.from_numpy(per_gauss).to(features.dtype)
         return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, _N_PARAMS:], None, None, None, None
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _finish_forward(image, alpha, background, rgb, depth, extra):  # pragma: no cover - compiled
+    height, width, dim = image.shape
+    for y in prange(height):
+        for x in range(width):
+            transmittance = f32(1.0) - alpha[y, x]
+            for c in range(3):
+                rgb[y, x, c] = image[y, x, c] + transmittance * background[c]
+            depth[y, x] = image[y, x, 3]
+            for c in range(dim - 4):
+                extra[y, x, c] = image[y, x, 4 + c]
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _finish_backward(grad_rgb, grad_depth, grad_extra, background, grad_image, grad_alpha):  # pragma: no cover - compiled
+    """Empty ``grad_depth`` / ``grad_extra`` (no element) stand for gradients autograd did not send: zeros."""
+    height, width, dim = grad_image.shape
+    has_depth, has_extra = grad_depth.size > 0, grad_extra.size > 0
+    for y in prange(height):
+        for x in range(width):
+            through_background = f32(0.0)
+            for c in range(3):
+                g = grad_rgb[y, x, c]
+                grad_image[y, x, c] = g
+                through_background += g * background[c]
+            grad_alpha[y, x] = -through_background
+            grad_image[y, x, 3] = grad_depth[y, x] if has_depth else f32(0.0)
+            for c in range(dim - 4):
+                grad_image[y, x, 4 + c] = grad_extra[y, x, c] if has_extra else f32(0.0)
+
+
+class _FinishImageCPU(torch.autograd.Function):
+    """The composited channels [H, W, 3 + 1 + C] and alpha -> rgb over the background, depth and the extra channels,
+    each its own contiguous array, in one pass (and one pass back). In torch this was a split into views, a
+    broadcast product and a sum, and their backward (a cat along the last dimension, a broadcast sum over the
+    colour channels): ~5 ms of a training step at 400x400, where this takes ~1."""
+
+    @staticmethod
+    def forward(ctx, image: Tensor, alpha: Tensor, background: Tensor):  # type: ignore[override]
+        height, width, dim = image.shape
+        rgb = np.empty((height, width, 3), dtype=np.float32)
+        depth = np.empty((height, width), dtype=np.float32)
+        extra = np.empty((height, width, dim - 4), dtype=np.float32)
+        bg = _f32(background)
+        _finish_forward(_f32(image), _f32(alpha), bg, rgb, depth, extra)
+        ctx.bg, ctx.shape = bg, (height, width, dim)
+        return torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(extra)
+
+    @staticmethod
+    def backward(ctx, grad_rgb: Tensor | None, grad_depth: Tensor | None, grad_extra: Tensor | None):  # type: ignore[override]
+        height, width, dim = ctx.shape
+        rgb = np.zeros((height, width, 3), dtype=np.float32) if grad_rgb is None else _f32(grad_rgb)
+        depth = np.empty((0, 0), dtype=np.float32) if grad_depth is None else _f32(grad_depth)
+        extra = np.empty((0, 0, 0), dtype=np.float32) if grad_extra is None or dim == 4 else _f32(grad_extra)
+        grad_image = np.empty((height, width, dim), dtype=np.float32)
+        grad_alpha = np.empty((height, width), dtype=np.float32)
+        _finish_backward(rgb, depth, extra, ctx.bg, grad_image, grad_alpha)
+        return torch.from_numpy(grad_image), torch.from_numpy(grad_alpha), None
+
+
+def finish_image_cpu(image: Tensor, alpha: Tensor, background: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(rgb [H, W, 3] = colour + (1 - alpha) * background, depth [H, W], extra [H, W, C]) from a composited image
+    [H, W, 3 + 1 + C] (colour, depth, C feature channels) and its alpha [H, W]: the arithmetic of
+    ``rasterize``'s torch form, differentiable with respect to ``image`` and ``alpha`` (not ``background``), for
+    float32 CPU tensors."""
+    if image.dtype != torch.float32 or image.device.type != "cpu" or image.dim() != 3 or image.shape[-1] < 4:
+        raise ValueError(f"finish_image_cpu: image must be a float32 CPU [H, W, 4 + C] tensor, got {image.dtype} {list(image.shape)} on {image.device}")
+    if background.requires_grad:
+        raise ValueError("finish_image_cpu: the background gets no gradient here; composite it in torch to learn it")
+    return _FinishImageCPU.apply(image, alpha, background)
 
 
 def composite_cpu(

@@ -346,3 +346,48 @@ def test_depth_order_is_a_stable_depth_sort():
     assert np.array_equal(depth_order(depths, indices), expected)
     close = np.array([1.0 + 1e-12, 1.0], dtype=np.float64)  # equal in float32
     assert depth_order(close, np.arange(2)).tolist() == [1, 0]
+
+
+@pytest.mark.parametrize("n_features", [0, 3])
+def test_finish_image_is_the_torch_arithmetic(n_features):
+    """``finish_image_cpu`` (rgb over the background, depth, features as separate arrays, in one pass): its outputs
+    and the gradients of image and alpha equal the torch form's, whichever outputs a loss reads (autograd sends
+    None for the others, which count as zeros)."""
+    from pidg.render.rasterize_cpu import finish_image_cpu
+
+    gen = torch.Generator().manual_seed(0)
+    image = torch.rand(9, 13, 4 + n_features, generator=gen)
+    alpha = torch.rand(9, 13, generator=gen)
+    background = torch.tensor([1.0, 0.25, 0.5])
+    for read in [(True, True, True), (True, False, False), (False, True, False), (False, False, True)]:
+        if not any(r for r, k in zip(read, (3, 1, n_features)) if k):
+            continue
+        results = []
+        for kernel in (False, True):
+            x, a = image.clone().requires_grad_(True), alpha.clone().requires_grad_(True)
+            if kernel:
+                outputs = finish_image_cpu(x, a, background)
+            else:
+                colour, depth, extra = x.split([3, 1, n_features], dim=-1)
+                outputs = (colour + (1.0 - a).unsqueeze(-1) * background, depth.squeeze(-1), extra)
+            weights = torch.Generator().manual_seed(1)
+            loss = sum((o * torch.randn(o.shape, generator=weights)).sum() for o, r in zip(outputs, read) if r and o.numel())
+            (loss + a.square().sum()).backward()  # alpha also reaches the loss directly, as the renders' alpha does
+            results.append([o.detach() for o in outputs] + [x.grad, a.grad])
+        for name, ref, got in zip(["rgb", "depth", "extra", "d image", "d alpha"], *results):
+            assert got.shape == ref.shape, name
+            torch.testing.assert_close(got, ref, rtol=1e-6, atol=1e-6, msg=name)
+    with pytest.raises(ValueError, match="float32 CPU"):
+        finish_image_cpu(image.double(), alpha.double(), background.double())
+
+
+def test_tiles_touched_are_the_tiles_holding_a_pixel():
+    """Against a loop over the tiles, on an image whose last tile row and column are partial."""
+    from pidg.render.api import tiles_touched
+
+    gen = torch.Generator().manual_seed(3)
+    pixels = torch.rand(37, 50, generator=gen) > 0.995
+    pixels[36, 49] = True  # the partial corner tile
+    expected = torch.tensor([[bool(pixels[y:y + 16, x:x + 16].any()) for x in range(0, 50, 16)] for y in range(0, 37, 16)])
+    assert expected.sum() < expected.numel()  # some tiles are empty
+    assert torch.equal(tiles_touched(pixels, 16), expected)

@@ -66,3 +66,18 @@ def test_depth_loss_gradient_of_the_cpu_kernel_matches_the_torch_reference():
         relative_depth_error(out, gt).backward()
         grads.append(m.grad)
     torch.testing.assert_close(grads[1], grads[0], rtol=2e-3, atol=1e-6)
+
+
+def test_opaque_depth_is_the_expected_depth_where_opaque_and_zero_elsewhere():
+    """depth / alpha where alpha >= min_alpha; exactly 0, with zero gradients, elsewhere, also where alpha is 0."""
+    alpha = torch.tensor([1.0, 0.5, 0.49, 0.0], requires_grad=True)
+    composited = torch.tensor([2.0, 1.5, 1.96, 0.0], requires_grad=True)  # a compositor's depth channel: depth x alpha
+    none = torch.zeros(0, 2)
+    out = RenderOutput(torch.zeros(4, 3), alpha, composited, None, none, torch.zeros(0, 2, dtype=torch.int32), torch.zeros(0))
+    d = out.opaque_depth(0.5)
+    assert d.tolist() == [2.0, 3.0, 0.0, 0.0]
+    d.sum().backward()
+    assert composited.grad.tolist() == [1.0, 2.0, 0.0, 0.0]  # 1 / alpha where opaque
+    assert alpha.grad.tolist() == [-2.0, -6.0, 0.0, 0.0]  # -depth x alpha / alpha^2 where opaque
+    with pytest.raises(ValueError, match="min_alpha must be > 0"):
+        out.opaque_depth(0.0)
