@@ -15,7 +15,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "pidg"
 #: Floors from the ground up; a room may import its own modules and any room on a lower floor, never a room on
 #: its own floor or above.
 FLOORS: list[set[str]] = [
-    {"pidg._env", "pidg.errors"},  # settings that must precede torch (the package's face imports them first); errors
+    # settings that must precede torch (the package's face imports them first); errors; numba float32 helpers
+    {"pidg._env", "pidg.errors", "pidg.kernel_math"},
     {"pidg", "pidg.config_tools", "pidg.checkpoint", "pidg.device", "pidg.render", "pidg.metrics"},
     {"pidg.data"},
     {"pidg.models"},

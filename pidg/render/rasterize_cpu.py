@@ -30,22 +30,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import llvmlite.ir
 import numba
 import numpy as np
 import torch
 from numba import njit, prange
-from numba.extending import intrinsic
 from torch import Tensor
 
+from pidg.kernel_math import exp_nonpositive_unclamped
 from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, tile_grid
 
 _N_PARAMS = 6  # gradient slots per Gaussian before its features: mean x, mean y, conic a, b, c, opacity
 LANES = 16  # pixels of a tile row processed together; the tile size may not exceed it
 _THRESHOLD_MARGIN = 1e-4  # slack on the log-alpha threshold so the exp approximation never drops a pair
 _POWER_FLOOR = -5.6  # below log(1/255): lanes under it are masked, so exp() only needs [-5.6, 0]
-_LOG2E = 1.4426950408889634
-_LN2 = 0.6931471805599453
 # The backward may reassociate its lane sums (deterministic for a given build; no FMA contraction, so alpha is
 # recomputed bit for bit as in the forward pass and the hit tests agree)
 _REDUCE_FASTMATH = {"reassoc", "nsz"}
@@ -166,27 +163,6 @@ def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, he
     rects, counts = _tile_rects(m2, rad, tile_size, tiles_x, tiles_y)
     tile_offsets, isect_ids, gauss_offsets, slot_of_isect = _bin_sorted(rects, counts, order, tiles_x, tiles_x * tiles_y)
     return TileBins(tile_offsets, isect_ids, gauss_offsets, slot_of_isect, tiles_x, tiles_y, tile_size)
-
-
-@intrinsic
-def _float32_from_bits(typingctx, bits):  # pragma: no cover - compiled
-    """Reinterpret an int32's bits as a float32 (LLVM bitcast): 2^n built in a register, where a table lookup
-    made the lane loops gather."""
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], llvmlite.ir.FloatType())
-
-    return numba.types.float32(numba.types.int32), codegen
-
-
-@njit(cache=True, inline="always")
-def _exp_neg(x):  # pragma: no cover - compiled
-    """exp(x) for x in [-5.6, 0], branch-free so lane loops vectorise: 2^n * Estrin(6) on [-ln2/2, ln2/2]."""
-    t = x * f32(_LOG2E)
-    n = np.floor(t + f32(0.5))
-    r = (t - n) * f32(_LN2)
-    r2 = r * r
-    poly = (f32(1.0) + r) + r2 * ((f32(0.5) + r * f32(1.0 / 6.0)) + r2 * ((f32(1.0 / 24.0) + r * f32(1.0 / 120.0)) + r2 * f32(1.0 / 720.0)))
-    return poly * _float32_from_bits((np.int32(n) + np.int32(127)) << np.int32(23))  # 2^n, n in [-9, 0]
 
 
 @njit(cache=True)
@@ -340,7 +316,7 @@ def _forward_tiles(
                     for lane in range(LANES):  # vectorised: no branches, and every store unconditional
                         dx = mx - xs[lane]
                         power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
-                        alpha = min(f32(ALPHA_MAX), o * _exp_neg(min(max(power, f32(_POWER_FLOOR)), f32(0.0))))
+                        alpha = min(f32(ALPHA_MAX), o * exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0))))
                         t = trans[lane]
                         hit = (live[lane] > f32(0.0)) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
                         next_trans = t * (f32(1.0) - alpha)
@@ -456,7 +432,7 @@ def _backward_tiles(
                     for lane in range(LANES):  # same alpha, bit for bit, as the forward pass; stores unconditional
                         dx = mx - xs[lane]
                         power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
-                        gs = _exp_neg(min(max(power, f32(_POWER_FLOOR)), f32(0.0)))
+                        gs = exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0)))
                         gauss[lane] = gs
                         alpha = min(f32(ALPHA_MAX), o * gs)
                         hit = (k_f < stop[lane]) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
@@ -594,6 +570,7 @@ class _FinishImageCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, image: Tensor, alpha: Tensor, background: Tensor):  # type: ignore[override]
+        ctx.set_materialize_grads(False)  # an output the loss does not read sends None, not a tensor of zeros
         height, width, dim = image.shape
         rgb = np.empty((height, width, 3), dtype=np.float32)
         depth = np.empty((height, width), dtype=np.float32)

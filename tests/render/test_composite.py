@@ -250,28 +250,34 @@ def test_feature_pixels_of_the_wrong_size_are_named():
 
 
 def test_kernel_exp_matches_numpy_over_its_domain():
-    """The compositor's branch-free exp (polynomial times 2^n built from its bits) against numpy's, on its
-    whole domain [-5.6, 0]: alpha and its gradient both rest on it."""
+    """The kernels' branch-free exp (polynomial times 2^n built from its bits, ``pidg.kernel_math``) against
+    numpy's: on the compositor's domain [-5.6, 0] (alpha and its gradient rest on it) and on the whole range the
+    attention gate uses, down to where 2^n leaves the normal floats; below it the clamped form stays there."""
     import numpy as np
     from numba import njit
 
-    from pidg.render.rasterize_cpu import _exp_neg
+    from pidg.kernel_math import EXP_MIN_ARGUMENT, exp_nonpositive, exp_nonpositive_unclamped
 
     @njit
-    def exp_all(x):
+    def exp_all(x, clamped):
         out = np.empty_like(x)
         for i in range(x.shape[0]):
-            out[i] = _exp_neg(x[i])
+            out[i] = exp_nonpositive(x[i]) if clamped else exp_nonpositive_unclamped(x[i])
         return out
 
-    x = np.linspace(-5.6, 0.0, 200_001).astype(np.float32)
-    approx = exp_all(x).astype(np.float64)
-    exact = np.exp(x.astype(np.float64))
-    assert np.max(np.abs(approx - exact) / exact) < 5e-7
+    for lo in (-5.6, EXP_MIN_ARGUMENT):
+        x = np.linspace(lo, 0.0, 200_001).astype(np.float32)
+        approx = exp_all(x, False).astype(np.float64)
+        exact = np.exp(x.astype(np.float64))
+        # further out the float32 rounding of x log2(e) adds up to |x| x 1e-7 (4e-6 measured at x = -87)
+        bound = 5e-7 if lo == -5.6 else 5e-7 + 1e-7 * np.abs(x)
+        assert np.all(np.abs(approx - exact) / exact < bound), lo
     # the exact powers of two at the reduction's break points: -k ln 2 -> 2^-k
     k = np.arange(0, 9)
-    at_powers = exp_all((-k * math.log(2.0)).astype(np.float32)).astype(np.float64)
+    at_powers = exp_all((-k * math.log(2.0)).astype(np.float32), False).astype(np.float64)
     assert np.allclose(at_powers, 2.0 ** -k, rtol=5e-7, atol=0)
+    far = exp_all(np.array([-100.0, -1e30, -np.inf], dtype=np.float32), True)
+    assert np.all(far == exp_all(np.array([EXP_MIN_ARGUMENT], dtype=np.float32), False)[0]) and np.all(far < 1e-37)
 
 
 def test_row_cull_never_drops_a_gaussian_that_reaches_the_row():

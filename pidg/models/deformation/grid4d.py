@@ -59,6 +59,7 @@ from pidg.models.deformation.hash_grid import (
     HashGrid,
     HashGridConfig,
 )
+from pidg.models.deformation.gate import attention, gate
 from pidg.models.deformation.warp import apply_warp, split_heads
 
 
@@ -104,8 +105,9 @@ class Grid4DConfig:
     max_log_scale_change: Annotated[float, NON_NEGATIVE] = 0.0
     """Soft bound on ds, the change of log-scale: ds = b tanh(ds_raw / b) (0: unbounded)."""
     backend: HashGridBackend = "auto"
-    """Implementation of the hash encoding and of the warp (``warp.py``): numba kernels on float32 CPU tensors, the
-    torch references otherwise (CUDA); cpu or torch force one."""
+    """Implementation of the hash encoding, of the warp (``warp.py``) and of the attention gate (``gate.py``): numba
+    kernels on float32 CPU tensors, the torch references otherwise (CUDA); cpu or torch force one (the gate follows
+    torch only: its kernel needs float32 CPU tensors)."""
 
     def __post_init__(self) -> None:
         validate_config(self)
@@ -161,7 +163,13 @@ class Grid4D(DeformationModel):
 
     def attention(self, spatial_features: Tensor) -> Tensor:
         """Directional attention a = 2 sigmoid(f_s(.)) - 1, in (-1, 1)."""
-        return 2.0 * torch.sigmoid(self.spatial_mlp(spatial_features)) - 1.0
+        return attention(self.spatial_mlp(spatial_features), self._kernels)
+
+    @property
+    def _kernels(self) -> bool | None:
+        """The gate's implementation: the torch reference when ``config.backend`` is torch, else by the tensors
+        (numba for float32 CPU ones)."""
+        return False if self.config.backend == "torch" else None
 
     def _cached_attention(self, u_xyz: Tensor) -> Tensor:
         """Attention at canonical positions. Without autograd (rendering many frames of one model), the attention
@@ -193,11 +201,12 @@ class Grid4D(DeformationModel):
         regularization = None
         if regularize:
             spatial, temporal, regularization = self._encode_with_regularizer(u_xyz, u_t)
-            a = self.attention(spatial)
+            # a and a * f_t(.) in one pass: f_t is Linear + ReLU, the ReLU applied by the gate
+            a, gated = gate(self.spatial_mlp(spatial), self.temporal_mlp[0](temporal), self._kernels)
         else:
             a = self._cached_attention(u_xyz) if invariant is None else invariant.to(dtype)
-            temporal = self.encode_temporal(u_xyz, u_t)
-        h = self.decoder(a * self.temporal_mlp(temporal))
+            gated = a * self.temporal_mlp(self.encode_temporal(u_xyz, u_t))
+        h = self.decoder(gated)
         new_means, new_quats, new_log_scales = apply_warp(
             means.to(dtype), quats.to(dtype), log_scales.to(dtype), self._heads(h), self.normalize.centre.to(dtype),
             self.normalize.half_extent.to(dtype), self.config.rotate_with_warp, self.config.backend,
