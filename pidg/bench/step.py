@@ -123,7 +123,10 @@ def _load_trained_model(trainer: Trainer, checkpoint: Path, log: Callable[[str],
 def _observe_every_frame(trainer: Trainer) -> None:
     """Show the loss terms that keep something from renders a no-grad render of every training frame, as a run past
     its first epoch has shown them: the timed steps then cost what the rest of a run's steps cost (the flow term
-    builds its targets from kept depths instead of rendering frame t+1 again)."""
+    builds its targets from kept depths instead of rendering frame t+1 again). One difference stays, on the
+    conservative side: every timed step builds its pair's flow target (no target is cached yet), where a run's
+    steps reuse a cached one about half the time (``FlowConfig.target_refresh_steps`` 300 against epochs of ~150
+    steps), so the bench's ``flow_target`` phase is about twice a run's (~3 of its ~6 ms at 400x400)."""
     terms = [term for term in trainer.loss_terms if type(term).observe is not LossTerm.observe]
     if not terms:
         return
