@@ -1,4 +1,5 @@
-"""float32 building blocks for pidg's numba kernels that keep their loops vectorisable (no libm call, no branch).
+"""float32 building blocks for pidg's numba kernels: the arrays they take, and arithmetic that keeps their loops
+vectorisable (no libm call, no branch).
 
 numba compiles ``math.exp`` to a scalar libm call per element (no SVML here), which stops a loop from being
 vectorised; these helpers build the same results from arithmetic and bit operations that LLVM vectorises.
@@ -8,13 +9,21 @@ from __future__ import annotations
 import llvmlite.ir
 import numba
 import numpy as np
+import torch
 from numba import njit
 from numba.extending import intrinsic
+from torch import Tensor
 
 f32 = np.float32
 _LOG2E = 1.4426950408889634
 _LN2 = 0.6931471805599453
 EXP_MIN_ARGUMENT = -87.0  # 2^n stays a normal float32 (n >= -126) for every x >= this
+
+
+def float32_array(t: Tensor) -> np.ndarray:
+    """What the kernels take: a tensor's values as a C-contiguous float32 numpy array, detached (a view of the
+    tensor's memory when it is one already, else a copy)."""
+    return t.detach().to(torch.float32).contiguous().numpy()
 
 
 @intrinsic

@@ -25,6 +25,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
+from pidg.kernel_math import float32_array
 from pidg.render.camera import Camera
 
 f32 = np.float32
@@ -136,10 +137,6 @@ def _dilate_cols_and_finish(rows, radius, valid0, flow):  # pragma: no cover - c
                 flow[i, j, 1] = f32(0.0)
 
 
-def _np32(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 def _np_bool(t: Tensor) -> np.ndarray:
     return t.detach().to(torch.bool).contiguous().numpy()
 
@@ -164,7 +161,7 @@ def motion_flow_target_cpu(
     motion = np.empty((h, w, 2), dtype=np.float32)
     valid1 = np.empty((h, w), dtype=np.bool_)
     _motion_on_frame1(
-        _np32(depth1), _np32(backward), ones if valid_backward is None else _np_bool(valid_backward), c2w1, w2c0,
+        float32_array(depth1), float32_array(backward), ones if valid_backward is None else _np_bool(valid_backward), c2w1, w2c0,
         f32(camera1.fx), f32(camera1.fy), f32(camera1.cx), f32(camera1.cy), f32(camera1.near),
         f32(camera0.fx), f32(camera0.fy), f32(camera0.cx), f32(camera0.cy), f32(camera0.near), motion, valid1,
     )
@@ -172,7 +169,7 @@ def motion_flow_target_cpu(
     valid0 = np.empty((h, w), dtype=np.bool_)
     derive = motion_mask0 is None
     moving = np.empty((h, w), dtype=np.bool_) if derive else _np_bool(motion_mask0)
-    _warp_to_frame0(motion, valid1, _np32(forward), ones if valid_forward is None else _np_bool(valid_forward), derive,
+    _warp_to_frame0(motion, valid1, float32_array(forward), ones if valid_forward is None else _np_bool(valid_forward), derive,
                     f32(motion_threshold), flow, valid0, moving)
     rows = np.empty((h, w), dtype=np.bool_)
     radius = max(int(dilation), 0)

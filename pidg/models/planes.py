@@ -34,6 +34,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
+from pidg.kernel_math import float32_array
 from pidg.models.deformation.hash_grid import HashGridBackend, resolve_backend
 
 f32 = np.float32
@@ -155,14 +156,10 @@ def _lookup_backward(planes, pa, pb, g_value, g_da, g_db, partial, grad_pa, grad
                     grad_pb[i, k] = sb
 
 
-def _f32(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 class _PlaneLookupCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, planes: Tensor, pa: Tensor, pb: Tensor, derivatives: bool):  # type: ignore[override]
-        np_planes, np_pa, np_pb = _f32(planes), _f32(pa), _f32(pb)
+        np_planes, np_pa, np_pb = float32_array(planes), float32_array(pa), float32_array(pb)
         m, (k, _, _, c) = np_pa.shape[0], np_planes.shape
         value = np.empty((m, k, c), dtype=np.float32)
         d_pa = np.empty((m, k, c) if derivatives else (0, 0, 0), dtype=np.float32)
@@ -176,21 +173,21 @@ class _PlaneLookupCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_value: Tensor | None, g_da: Tensor | None = None, g_db: Tensor | None = None):  # type: ignore[override]
         planes, pa, pb = ctx.saved_tensors
-        np_pa, np_pb = _f32(pa), _f32(pb)
+        np_pa, np_pb = float32_array(pa), float32_array(pb)
         m, (k, _, _, c) = np_pa.shape[0], planes.shape
         zeros = np.zeros((m, k, c), dtype=np.float32)
         no_slopes = np.empty((0, 0, 0), dtype=np.float32)
-        gv = zeros if g_value is None else _f32(g_value)
+        gv = zeros if g_value is None else float32_array(g_value)
         if g_da is None and g_db is None:  # no derivative outputs, or none used
             ga = gb = no_slopes
         else:
-            ga = zeros if g_da is None else _f32(g_da)
-            gb = zeros if g_db is None else _f32(g_db)
+            ga = zeros if g_da is None else float32_array(g_da)
+            gb = zeros if g_db is None else float32_array(g_db)
         coords = ctx.needs_input_grad[1] or ctx.needs_input_grad[2]
         partial = np.zeros((backward_tasks(m), *planes.shape), dtype=np.float32)
         out_a = np.empty((m, k) if coords else (0, k), dtype=np.float32)
         out_b = np.empty_like(out_a)
-        _lookup_backward(_f32(planes), np_pa, np_pb, gv, ga, gb, partial, out_a, out_b)
+        _lookup_backward(float32_array(planes), np_pa, np_pb, gv, ga, gb, partial, out_a, out_b)
         grad_planes = torch.from_numpy(partial.sum(axis=0)).to(planes.dtype) if ctx.needs_input_grad[0] else None
         grad_pa = torch.from_numpy(out_a).to(pa.dtype) if ctx.needs_input_grad[1] else None
         grad_pb = torch.from_numpy(out_b).to(pb.dtype) if ctx.needs_input_grad[2] else None

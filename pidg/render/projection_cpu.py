@@ -25,6 +25,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
+from pidg.kernel_math import float32_array
 from pidg.render.camera import Camera
 from pidg.render.projection import ALPHA_MIN, EPS2D, FRUSTUM_MARGIN, Projection
 from pidg.render.sh import C0, C1, C2, C3
@@ -373,12 +374,8 @@ def _project_backward(means, quats, scales, coeffs, degree, cam, eps2d, g_means2
             grad_means[i, 0], grad_means[i, 1], grad_means[i, 2] = gmx, gmy, gmz
 
 
-def _np(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 def _grad(t: Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
-    return np.zeros(shape, dtype=np.float32) if t is None else _np(t)
+    return np.zeros(shape, dtype=np.float32) if t is None else float32_array(t)
 
 
 class _ProjectShadeCPU(torch.autograd.Function):
@@ -386,14 +383,14 @@ class _ProjectShadeCPU(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, coeffs, camera, degree: int, eps2d: float):  # type: ignore[override]
         n = means.shape[0]
         cam = _camera_constants(camera)
-        m, q, s, c = _np(means), _np(quats), _np(scales), _np(coeffs)
+        m, q, s, c = float32_array(means), float32_array(quats), float32_array(scales), float32_array(coeffs)
         means2d = np.empty((n, 2), dtype=np.float32)
         conics = np.empty((n, 3), dtype=np.float32)
         depths = np.empty(n, dtype=np.float32)
         cov2d = np.empty((n, 3), dtype=np.float32)
         rgb = np.empty((n, 3), dtype=np.float32)
         radii = np.empty((n, 2), dtype=np.int32)
-        _project_forward(m, q, s, _np(opacities), c, degree, cam, np.float32(eps2d), means2d, conics, depths, cov2d, rgb, radii)
+        _project_forward(m, q, s, float32_array(opacities), c, degree, cam, np.float32(eps2d), means2d, conics, depths, cov2d, rgb, radii)
         ctx.save_for_backward(means, quats, scales, coeffs)
         ctx.cam, ctx.degree, ctx.eps2d = cam, degree, eps2d
         dtype = means.dtype
@@ -412,7 +409,7 @@ class _ProjectShadeCPU(torch.autograd.Function):
         grad_scales = np.empty((n, 3), dtype=np.float32)
         grad_coeffs = np.zeros(tuple(coeffs.shape), dtype=np.float32)
         _project_backward(
-            _np(means), _np(quats), _np(scales), _np(coeffs), ctx.degree, ctx.cam, np.float32(ctx.eps2d),
+            float32_array(means), float32_array(quats), float32_array(scales), float32_array(coeffs), ctx.degree, ctx.cam, np.float32(ctx.eps2d),
             _grad(g_means2d, (n, 2)), _grad(g_conics, (n, 3)), _grad(g_depths, (n,)), _grad(g_cov2d, (n, 3)),
             _grad(g_rgb, (n, 3)), grad_means, grad_quats, grad_scales, grad_coeffs,
         )

@@ -36,7 +36,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from pidg.kernel_math import exp_nonpositive_unclamped
+from pidg.kernel_math import exp_nonpositive_unclamped, float32_array
 from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, tile_grid
 
 _N_PARAMS = 6  # gradient slots per Gaussian before its features: mean x, mean y, conic a, b, c, opacity
@@ -491,10 +491,6 @@ def _reduce_per_gaussian(isect_grads, gauss_offsets, out):  # pragma: no cover -
                 out[g, j] += isect_grads[i, j]
 
 
-def _f32(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 class _CompositeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int, tile_dims: np.ndarray):  # type: ignore[override]
@@ -504,7 +500,7 @@ class _CompositeCPU(torch.autograd.Function):
         img = np.empty((height, width, dim), dtype=np.float32)
         trans = np.empty((height, width), dtype=np.float32)
         end = np.empty((height, width), dtype=np.int32)
-        args = (_f32(means2d), _f32(conics), _f32(opacities), _f32(features), bins.tile_offsets, bins.isect_ids, tile_dims)
+        args = (float32_array(means2d), float32_array(conics), float32_array(opacities), float32_array(features), bins.tile_offsets, bins.isect_ids, tile_dims)
         with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
             _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, trans, end)
         ctx.save_for_backward(means2d, conics, opacities, features)
@@ -521,9 +517,9 @@ class _CompositeCPU(torch.autograd.Function):
         isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + dim), dtype=np.float32)  # rows no pixel reached: 0
         with numba.parallel_chunksize(1):
             _backward_tiles(
-                _f32(means2d), _f32(conics), _f32(opacities), _f32(features), bins.tile_offsets, bins.isect_ids,
-                ctx.tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, _f32(grad_img),
-                _f32(grad_alpha), bins.slot_of_isect, isect_grads,
+                float32_array(means2d), float32_array(conics), float32_array(opacities), float32_array(features), bins.tile_offsets, bins.isect_ids,
+                ctx.tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, float32_array(grad_img),
+                float32_array(grad_alpha), bins.slot_of_isect, isect_grads,
             )
         per_gauss = np.empty((n, _N_PARAMS + dim), dtype=np.float64)
         _reduce_per_gaussian(isect_grads, bins.gauss_offsets, per_gauss)
@@ -575,17 +571,17 @@ class _FinishImageCPU(torch.autograd.Function):
         rgb = np.empty((height, width, 3), dtype=np.float32)
         depth = np.empty((height, width), dtype=np.float32)
         extra = np.empty((height, width, dim - 4), dtype=np.float32)
-        bg = _f32(background)
-        _finish_forward(_f32(image), _f32(alpha), bg, rgb, depth, extra)
+        bg = float32_array(background)
+        _finish_forward(float32_array(image), float32_array(alpha), bg, rgb, depth, extra)
         ctx.bg, ctx.shape = bg, (height, width, dim)
         return torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(extra)
 
     @staticmethod
     def backward(ctx, grad_rgb: Tensor | None, grad_depth: Tensor | None, grad_extra: Tensor | None):  # type: ignore[override]
         height, width, dim = ctx.shape
-        rgb = np.zeros((height, width, 3), dtype=np.float32) if grad_rgb is None else _f32(grad_rgb)
-        depth = np.empty((0, 0), dtype=np.float32) if grad_depth is None else _f32(grad_depth)
-        extra = np.empty((0, 0, 0), dtype=np.float32) if grad_extra is None or dim == 4 else _f32(grad_extra)
+        rgb = np.zeros((height, width, 3), dtype=np.float32) if grad_rgb is None else float32_array(grad_rgb)
+        depth = np.empty((0, 0), dtype=np.float32) if grad_depth is None else float32_array(grad_depth)
+        extra = np.empty((0, 0, 0), dtype=np.float32) if grad_extra is None or dim == 4 else float32_array(grad_extra)
         grad_image = np.empty((height, width, dim), dtype=np.float32)
         grad_alpha = np.empty((height, width), dtype=np.float32)
         _finish_backward(rgb, depth, extra, ctx.bg, grad_image, grad_alpha)

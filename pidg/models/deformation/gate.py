@@ -16,7 +16,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from pidg.kernel_math import exp_nonpositive
+from pidg.kernel_math import exp_nonpositive, float32_array
 
 f32 = np.float32
 
@@ -79,15 +79,11 @@ def _gate_backward(a, z_temporal, grad_a, grad_h, has_grad_a, grad_spatial, grad
             grad_temporal[i, j] = g * v if z > f32(0.0) else f32(0.0)
 
 
-def _f32(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 class _AttentionCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, z: Tensor) -> Tensor:  # type: ignore[override]
         a = np.empty(tuple(z.shape), dtype=np.float32)
-        _attention_forward(_f32(z), a)
+        _attention_forward(float32_array(z), a)
         out = torch.from_numpy(a)
         ctx.save_for_backward(out)
         return out
@@ -96,7 +92,7 @@ class _AttentionCPU(torch.autograd.Function):
     def backward(ctx, grad_a: Tensor) -> Tensor:  # type: ignore[override]
         (a,) = ctx.saved_tensors
         grad = np.empty(tuple(a.shape), dtype=np.float32)
-        _attention_backward(a.numpy(), _f32(grad_a), grad)
+        _attention_backward(a.numpy(), float32_array(grad_a), grad)
         return torch.from_numpy(grad)
 
 
@@ -106,7 +102,7 @@ class _GateCPU(torch.autograd.Function):
         ctx.set_materialize_grads(False)  # an output the loss does not read sends None, not a tensor of zeros
         shape = tuple(z_spatial.shape)
         a, h = np.empty(shape, dtype=np.float32), np.empty(shape, dtype=np.float32)
-        _gate_forward(_f32(z_spatial), _f32(z_temporal), a, h)
+        _gate_forward(float32_array(z_spatial), float32_array(z_temporal), a, h)
         a_out = torch.from_numpy(a)
         ctx.save_for_backward(a_out, z_temporal)
         return a_out, torch.from_numpy(h)
@@ -117,11 +113,11 @@ class _GateCPU(torch.autograd.Function):
         a = a_out.numpy()
         grad_spatial = np.empty_like(a)
         if grad_h is None:  # only a was read: z_t gets no gradient
-            _attention_backward(a, _f32(grad_a), grad_spatial)
+            _attention_backward(a, float32_array(grad_a), grad_spatial)
             return torch.from_numpy(grad_spatial), None
-        g_a = np.empty((0, 0), dtype=np.float32) if grad_a is None else _f32(grad_a)
+        g_a = np.empty((0, 0), dtype=np.float32) if grad_a is None else float32_array(grad_a)
         grad_temporal = np.empty_like(a)
-        _gate_backward(a, _f32(z_temporal), g_a, _f32(grad_h), grad_a is not None, grad_spatial, grad_temporal)
+        _gate_backward(a, float32_array(z_temporal), g_a, float32_array(grad_h), grad_a is not None, grad_spatial, grad_temporal)
         return torch.from_numpy(grad_spatial), torch.from_numpy(grad_temporal)
 
 

@@ -42,6 +42,7 @@ from numba import njit, prange
 from torch import Tensor, nn
 
 from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, Range, validate_config
+from pidg.kernel_math import float32_array
 
 HASH_PRIMES = (1, 2654435761, 805459861)
 #: Which hash-encoding implementation runs: "cpu" (numba kernel), "torch" (reference, any device), "auto" (by device).
@@ -415,15 +416,11 @@ _UNREFERENCED = 2  # sys.getrefcount of an array held only by the pool's list: t
 _GRAD_BUFFERS = _GradBufferPool()
 
 
-def _f32(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 def _f32_rows(t: Tensor) -> np.ndarray:
     """float32 [N, C] with unit column stride, as a view when it already is one: the incoming gradient is usually a
     column block of the concatenated features' gradient, which the kernels read in place instead of copying."""
     t = t.detach()
-    return t.numpy() if t.dtype == torch.float32 and t.stride(-1) == 1 else _f32(t)
+    return t.numpy() if t.dtype == torch.float32 and t.stride(-1) == 1 else float32_array(t)
 
 
 def _unit_soa(*blocks: Tensor) -> np.ndarray:
@@ -443,7 +440,7 @@ class _HashEncodeCPU(torch.autograd.Function):
     def forward(ctx, coords: Tensor, table: Tensor, layout: GridLayout) -> Tensor:  # type: ignore[override]
         u = _unit_soa(coords)
         out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
-        _encode_forward(u, _f32(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
+        _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
         ctx.save_for_backward(coords, table)
         ctx.layout = layout
         ctx.unit_soa = u  # the backward reads the same clamped [3, N] copy (small), instead of making it again
@@ -463,7 +460,7 @@ class _HashEncodeCPU(torch.autograd.Function):
             grad_table = torch.from_numpy(g_tab).to(table.dtype)
         if ctx.needs_input_grad[0]:
             g_u = np.empty((u.shape[1], 3), dtype=np.float32)
-            _encode_backward_coords(u, _f32(table), g, *consts, g_u)
+            _encode_backward_coords(u, float32_array(table), g, *consts, g_u)
             inside = (coords >= 0) & (coords <= 1)  # torch.clamp's convention: the boundary passes the gradient
             grad_coords = torch.from_numpy(g_u).to(coords.dtype) * inside
         return grad_coords, grad_table, None
@@ -550,7 +547,7 @@ class _HashEncodeSmoothCPU(torch.autograd.Function):
         n = coords.shape[0]
         u = _unit_soa(coords, jittered)  # [3, N + M]
         out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
-        _encode_forward(u, _f32(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
+        _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
         rows_np = rows.detach().cpu().numpy().astype(np.int64)
         change = np.empty((rows_np.shape[0], layout.out_dim), dtype=np.float32)  # G(u_i + d_i) - G(u_i)
         total = _change_rows(out, n, rows_np, change)
@@ -575,7 +572,7 @@ class _HashEncodeSmoothCPU(torch.autograd.Function):
             grad_table = torch.from_numpy(g_tab).to(table.dtype)
         if ctx.needs_input_grad[0]:
             g_u = np.empty((n, 3), dtype=np.float32)
-            _encode_backward_coords(np.ascontiguousarray(u[:, :n]), _f32(table), g_main, *consts, g_u)
+            _encode_backward_coords(np.ascontiguousarray(u[:, :n]), float32_array(table), g_main, *consts, g_u)
             inside = (coords >= 0) & (coords <= 1)
             grad_coords = torch.from_numpy(g_u).to(coords.dtype) * inside
         return grad_coords, None, None, grad_table, None

@@ -34,6 +34,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
+from pidg.kernel_math import float32_array
 from pidg.models.deformation.base import quat_multiply, quat_rotate, unit_quat_from_delta
 from pidg.models.deformation.hash_grid import HashGridBackend, resolve_backend
 
@@ -158,16 +159,12 @@ def _warp_backward(means, quats, heads, centre, half, rotate, g_means_out, g_qua
             g_heads[i, 11 + d] = g_ls_out[i, d]
 
 
-def _f32(t: Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 class _WarpCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, log_scales, heads, centre, half_extent, rotate_with_warp: bool):  # type: ignore[override]
         n = means.shape[0]
         out = [np.empty((n, k), dtype=np.float32) for k in (3, 4, 3)]
-        arrays = [_f32(t) for t in (means, quats, log_scales, heads, centre, half_extent)]
+        arrays = [float32_array(t) for t in (means, quats, log_scales, heads, centre, half_extent)]
         _warp_forward(*arrays, bool(rotate_with_warp), *out)
         ctx.save_for_backward(means, quats, heads, centre, half_extent)
         ctx.rotate = bool(rotate_with_warp)
@@ -180,8 +177,8 @@ class _WarpCPU(torch.autograd.Function):
         grads = [np.empty((n, k), dtype=np.float32) for k in (3, 4, 14)]
         with numba.parallel_chunksize(1024):
             _warp_backward(
-                *(_f32(t) for t in (means, quats, heads, centre, half_extent)), ctx.rotate,
-                *(_f32(g) for g in (g_means_out, g_quats_out, g_ls_out)), *grads,
+                *(float32_array(t) for t in (means, quats, heads, centre, half_extent)), ctx.rotate,
+                *(float32_array(g) for g in (g_means_out, g_quats_out, g_ls_out)), *grads,
             )
         g_means, g_quats, g_heads = (torch.from_numpy(a) for a in grads)
         return g_means, g_quats, g_ls_out.to(torch.float32), g_heads, None, None, None
