@@ -98,7 +98,7 @@ def supervised_flow_channels(
     out = state_t.means.new_zeros(n, channels)
     if rows.numel() == 0:
         return out
-    invariant = None if state_t.invariant is None else state_t.invariant.index_select(0, rows)
+    invariant = state_t.invariant_of(rows)
     sub_t = DeformedGaussians(*(x.index_select(0, rows) for x in (state_t.means, state_t.quats, state_t.log_scales)),
                               invariant=invariant)
     if deforming:

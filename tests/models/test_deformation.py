@@ -13,6 +13,7 @@ from pidg.models.deformation import (
     Bounds,
     DeformationConfig,
     DeformationModel,
+    DeformedGaussians,
     Grid4D,
     Grid4DConfig,
     HashGridConfig,
@@ -306,11 +307,38 @@ def test_grid4d_pass_at_another_time_reuses_the_attention_with_the_same_values_a
         assert torch.equal(a, b)
     for a, b in zip(fresh_grads, reused_grads):  # float32 sums in another order: equal to rounding
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5 * float(a.abs().max()))
-    assert fresh.invariant.shape == (means.shape[0], SMALL_GRID4D.width)
-    if static:  # the rows a static mask skips carry no features
-        assert fresh.invariant[static_mask].abs().max() == 0
+    if static:  # only the deformed rows' features are kept, and read back by row
+        deformed = torch.nonzero(~static_mask).squeeze(1)
+        assert fresh.invariant.shape == (deformed.numel(), SMALL_GRID4D.width)
+        assert torch.equal(fresh.invariant_rows, deformed)
+        everyone = fresh.invariant_of(torch.arange(means.shape[0]))
+        assert everyone[static_mask].abs().max() == 0 and torch.equal(everyone[~static_mask], fresh.invariant)
+        with pytest.raises(ValueError, match=r"one row per Gaussian \(300\) or per deformed Gaussian \(200\)"):
+            model(means, quats, log_scales, 0.7, static_mask=static_mask, invariant=fresh.invariant[:10])
+    else:
+        assert fresh.invariant.shape == (means.shape[0], SMALL_GRID4D.width) and fresh.invariant_rows is None
     with pytest.raises(ValueError, match=r"one row per Gaussian \(300\)"):
         model(means, quats, log_scales, 0.7, invariant=fresh.invariant[:10])
+
+
+def test_invariant_of_reads_either_layout_with_the_same_values_and_gradients():
+    """``DeformedGaussians.invariant_of(rows)`` of a pass that kept only its deformed rows' features equals the
+    same rows of those features spread over every Gaussian with zeros (the layout before), gradients included."""
+    n, d = 12, 5
+    deformed = torch.tensor([1, 2, 4, 7, 8, 11])
+    rows = torch.tensor([11, 0, 4, 4, 3, 8, 1])  # any order, repeats, skipped ones
+    values = torch.randn(deformed.numel(), d, requires_grad=True)
+    weights = torch.randn(rows.numel(), d)
+    means = torch.zeros(n, 3)
+    compact = DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3), invariant=values, invariant_rows=deformed)
+    (compact.invariant_of(rows) * weights).sum().backward()
+    grad_compact, values.grad = values.grad.clone(), None
+    spread = values.new_zeros(n, d).index_copy(0, deformed, values)
+    dense = DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3), invariant=spread)
+    assert torch.equal(compact.invariant_of(rows), dense.invariant_of(rows))
+    (dense.invariant_of(rows) * weights).sum().backward()
+    assert torch.equal(grad_compact, values.grad)
+    assert DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3)).invariant_of(rows) is None
 
 
 @pytest.mark.parametrize("kind", ["mlp", "identity"])

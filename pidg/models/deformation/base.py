@@ -40,9 +40,26 @@ class DeformedGaussians:
     quats: Tensor  # [N, 4] (w, x, y, z)
     log_scales: Tensor  # [N, 3] log of world units
     regularization: Tensor | None = None  # the model's regulariser for this pass (scalar; None unless asked for)
-    #: [N, D] the model's time-independent features of these Gaussians (Grid4D: its directional attention; None for
-    #: models without any), for a pass over the same Gaussians at another time; rows a static mask skipped are 0
+    #: the model's time-independent features of these Gaussians (Grid4D: its directional attention; None for models
+    #: without any), for a pass over the same Gaussians at another time: [N, D], one row per Gaussian, or, from a pass
+    #: whose static mask skipped some, [M, D] for the M it deformed (``invariant_rows``): a pass that only renders
+    #: then pays nothing for the skipped rows
     invariant: Tensor | None = None
+    #: [M] (ascending) the Gaussians ``invariant``'s rows belong to when it holds only the deformed ones; None: all
+    invariant_rows: Tensor | None = None
+
+    def invariant_of(self, rows: Tensor) -> Tensor | None:
+        """The invariant features [len(rows), D] of the Gaussians ``rows`` (indices), 0 for those the pass skipped,
+        whichever layout ``invariant`` holds."""
+        if self.invariant is None:
+            return None
+        if self.invariant_rows is None:
+            return self.invariant.index_select(0, rows)
+        position = torch.full((self.means.shape[0],), -1, dtype=torch.long, device=rows.device)
+        position[self.invariant_rows] = torch.arange(self.invariant_rows.numel(), device=rows.device)
+        at = position.index_select(0, rows)
+        deformed = (at >= 0).unsqueeze(1).to(self.invariant.dtype)
+        return self.invariant.index_select(0, at.clamp_min(0)) * deformed
 
 
 @dataclass(frozen=True)
@@ -157,9 +174,10 @@ class DeformationModel(nn.Module, ABC):
 
         Rows where ``static_mask`` [N] bool is True are returned unchanged and are not evaluated at all (stage 2
         of PIDG keeps static Gaussians out of the deformation), so they receive no gradient through the model.
-        ``regularize``: also return the model's regulariser on the deformed rows (training). ``invariant`` [N, D]:
-        the ``DeformedGaussians.invariant`` of a pass of this model over these same Gaussians (same canonical
-        parameters, any time), used instead of computing them.
+        ``regularize``: also return the model's regulariser on the deformed rows (training). ``invariant``: the
+        ``DeformedGaussians.invariant`` of a pass of this model over these same Gaussians (same canonical parameters
+        and static mask, any time), used instead of computing them: [N, D], or [M, D] for the M rows the static mask
+        leaves to deform, in order (what a pass with that mask returns).
         """
         n = means.shape[0]
         if means.shape != (n, 3) or quats.shape != (n, 4) or log_scales.shape != (n, 3):
@@ -168,29 +186,31 @@ class DeformationModel(nn.Module, ABC):
                 f"{list(means.shape)}, {list(quats.shape)}, {list(log_scales.shape)}"
             )
         times = times_column(t, n, means)
-        if invariant is not None and invariant.shape[0] != n:
-            raise ValueError(f"deformation: invariant features must have one row per Gaussian ({n}), got {list(invariant.shape)}")
         if static_mask is None:
+            _check_invariant_rows(invariant, n)
             return self._deform(means, quats, log_scales, times, regularize, invariant)
         if static_mask.shape != (n,) or static_mask.dtype != torch.bool:
             raise ValueError(f"deformation: static_mask must be a bool tensor [N] = [{n}], got {static_mask.dtype} {list(static_mask.shape)}")
         rows = torch.nonzero(~static_mask).squeeze(1)
+        _check_invariant_rows(invariant, n, rows.numel())
         if rows.numel() == n:
             return self._deform(means, quats, log_scales, times, regularize, invariant)
         if rows.numel() == 0:
             return DeformedGaussians(means, quats, log_scales)
-        # index_select rather than x[rows]: its backward (index_add) is ~3x faster on the CPU for the invariant's
-        # 64-wide rows than advanced indexing's (index_put with accumulate)
-        moved = self._deform(*(x.index_select(0, rows) for x in (means, quats, log_scales, times)), regularize,
-                             None if invariant is None else invariant.index_select(0, rows))
-        kept = moved.invariant
+        if invariant is not None and invariant.shape[0] == n:
+            # index_select rather than x[rows]: its backward (index_add) is ~3x faster on the CPU for the invariant's
+            # 64-wide rows than advanced indexing's (index_put with accumulate)
+            invariant = invariant.index_select(0, rows)
+        moved = self._deform(*(x.index_select(0, rows) for x in (means, quats, log_scales, times)), regularize, invariant)
         return DeformedGaussians(
             means.index_copy(0, rows, moved.means.to(means.dtype)),
             quats.index_copy(0, rows, moved.quats.to(quats.dtype)),
             log_scales.index_copy(0, rows, moved.log_scales.to(log_scales.dtype)),
             moved.regularization,
-            # in place on a fresh zero tensor: the out-of-place form first copies the zeros (1.07 vs 1.67 ms at 18k x 64)
-            None if kept is None else kept.new_zeros(n, kept.shape[1]).index_copy_(0, rows, kept),
+            # the deformed rows' only, not spread over all N with zeros: nothing but a later pass's invariant_of reads
+            # them, and most passes have no later pass (an [N, 64] zero-fill and copy, ~1 ms a step at 18k)
+            moved.invariant,
+            None if moved.invariant is None else rows,
         )
 
     def _deform(
@@ -212,6 +232,14 @@ class DeformationModel(nn.Module, ABC):
         """Parameters by optimiser group (``GROUP_GRID``, ``GROUP_MLP``); empty groups are left out."""
         params = [p for p in self.parameters() if p.requires_grad]
         return {GROUP_MLP: params} if params else {}
+
+
+def _check_invariant_rows(invariant: Tensor | None, n: int, deformed: int | None = None) -> None:
+    """``invariant`` has one row per Gaussian (n) or, with a static mask, one per deformed Gaussian."""
+    if invariant is None or invariant.shape[0] == n or invariant.shape[0] == deformed:
+        return
+    per = f"one row per Gaussian ({n})" + ("" if deformed is None else f" or per deformed Gaussian ({deformed})")
+    raise ValueError(f"deformation: invariant features must have {per}, got {list(invariant.shape)}")
 
 
 class NormalizedPositions(nn.Module):
