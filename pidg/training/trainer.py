@@ -167,7 +167,9 @@ class Trainer:
         """The optimizers of the Gaussians' parameters (what densification edits), by parameter name."""
         return {name: self.optimizers[name].optimizer for name in self.model.gaussians.params if name in self.optimizers}
 
-    def train_step(self) -> dict[str, float]:
+    def train_step(self, log: bool = True) -> dict[str, float]:
+        """One optimisation step; returns the loss, its terms and the number of Gaussians, and with ``log`` also the
+        training PSNR (an extra pass over the image, so the loop asks for it on the steps it logs only)."""
         model, timer, step = self.model, self.timer, self.step
         frame = self.next_frame()
         model.gaussians.update_sh_degree(step)
@@ -205,7 +207,9 @@ class Trainer:
             )
             self.decoupling.step_post_backward(model, self.scene.train, step)
         timer.steps += 1
-        parts.update(loss=float(loss.detach()), psnr=float(psnr(out.rgb.detach().clamp(0, 1), frame.image)), gaussians=model.num_gaussians)
+        parts.update(loss=float(loss.detach()), gaussians=model.num_gaussians)
+        if log:
+            parts["psnr"] = float(psnr(out.rgb.detach().clamp(0, 1), frame.image))
         if report is not None:
             parts["densified"] = 1.0
         self.step += 1
@@ -280,7 +284,7 @@ class Trainer:
                         # every step: numba's thread pool, started by the first kernel, resets OpenMP's count
                         torch.set_num_threads(cfg.cpu_torch_threads)
                     try:
-                        parts = self.train_step()
+                        parts = self.train_step(log=self._logs(self.step + 1, total))
                     except NonFiniteError as err:
                         self._roll_back(checkpoint, err)
                         bar.reset(total=total)
@@ -290,7 +294,7 @@ class Trainer:
                     if fitting and self.schedule_fit is None and self._fit_to_budget(budget, out_dir):
                         total = self.config.optim.iterations
                         bar.total = total
-                    if self.step % cfg.output.log_every == 0 or self.step == total:
+                    if self._logs(self.step, total):
                         self.history.append({"step": self.step, **parts})
                         bar.set_postfix(loss=f"{parts['loss']:.4f}", psnr=f"{parts['psnr']:.2f}", n=parts["gaussians"])
                         if writer is not None:
@@ -328,6 +332,10 @@ class Trainer:
         summary = self.summary(stopped_by)
         (out_dir / "train_summary.json").write_text(json.dumps(summary, indent=2))
         return summary
+
+    def _logs(self, step: int, total: int) -> bool:
+        """Whether the loop logs the state after ``step`` steps (every ``log_every`` and the last)."""
+        return step % self.config.output.log_every == 0 or step == total
 
     def fit_start(self) -> int:
         """The step from which a budget-fitted run times its steps: after densification and the static/dynamic split,

@@ -16,7 +16,7 @@ def test_cpu_steps_run_torch_on_the_configured_threads_and_training_restores_the
     trainer = Trainer(dataclasses.replace(small_config(tmp_path, 3), cpu_torch_threads=threads), small_scene)
     seen: list[int] = []
     step = trainer.train_step
-    trainer.train_step = lambda: (seen.append(torch.get_num_threads()), step())[1]  # type: ignore[method-assign]
+    trainer.train_step = lambda **kw: (seen.append(torch.get_num_threads()), step(**kw))[1]  # type: ignore[method-assign]
     caller = torch.get_num_threads()
     try:
         torch.set_num_threads(3)

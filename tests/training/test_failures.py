@@ -90,10 +90,10 @@ def test_an_error_keeps_the_last_good_checkpoint_and_names_both_files(small_scen
     trainer = Trainer(small_config(tmp_path), small_scene)
     original = trainer.train_step
 
-    def failing_step():
+    def failing_step(**kwargs):
         if trainer.step == 6:
             raise RuntimeError("disk on fire")
-        return original()
+        return original(**kwargs)
 
     monkeypatch.setattr(trainer, "train_step", failing_step)
     with pytest.raises(TrainingFailed, match=r"failed at step 6 \(RuntimeError: disk on fire\).*checkpoint.pt \(step 4\).*checkpoint.failed.pt"):
@@ -105,10 +105,10 @@ def test_ctrl_c_finishes_the_step_and_checkpoints(small_scene, small_config, tmp
     trainer = Trainer(small_config(tmp_path), small_scene)
     original = trainer.train_step
 
-    def step_with_interrupt():
+    def step_with_interrupt(**kwargs):
         if trainer.step == 2:
             os.kill(os.getpid(), signal.SIGINT)
-        return original()
+        return original(**kwargs)
 
     monkeypatch.setattr(trainer, "train_step", step_with_interrupt)
     before = signal.getsignal(signal.SIGINT)  # default, or ignored when the tests run in the background

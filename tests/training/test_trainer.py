@@ -64,6 +64,23 @@ def test_training_reduces_the_loss_and_densifies(scene, tmp_path):
     assert trainer.model.dynamic_mask is not None  # the procedural scene has motion masks: decoupled
 
 
+def test_the_training_psnr_is_computed_on_the_logged_steps_only(scene, tmp_path, monkeypatch):
+    """The per-step training PSNR is a pass over the image that only the log reads: the loop computes it on the
+    steps it logs (every ``log_every`` and the last), and every logged entry has it."""
+    import pidg.training.trainer as trainer_module
+
+    cfg = tiny_config(tmp_path, iterations=11)
+    cfg.output = dataclasses.replace(cfg.output, log_every=4)
+    calls = []
+    original = trainer_module.psnr
+    monkeypatch.setattr(trainer_module, "psnr", lambda *a: (calls.append(1), original(*a))[1])
+    trainer = Trainer(cfg, scene)
+    trainer.train()
+    assert [h["step"] for h in trainer.history] == [4, 8, 11] and len(calls) == 3
+    assert all(h["psnr"] > 0 for h in trainer.history)
+    assert "psnr" not in trainer.train_step(log=False) and "psnr" in trainer.train_step()
+
+
 @pytest.mark.parametrize("curriculum", [0, 12])
 def test_resume_matches_an_uninterrupted_run(scene, tmp_path, curriculum):
     def config(out_dir):
