@@ -22,7 +22,8 @@ Two implementations behind ``hash_encode``:
   * ``hash_encode_reference``: plain torch, vectorised over levels, autograd for everything (table and
     coordinates, any order). Runs on any device; it is what CUDA tensors use.
   * ``_HashEncodeCPU``: numba kernels, float32, first derivatives only (use the reference for higher ones).
-    Forward: one parallel task per chunk of points. Backward w.r.t. the table: one parallel task per *level*.
+    Forward: one parallel task per level and chunk of points (a level's rows stay in cache). Backward w.r.t. the
+    table: one parallel task per *level*.
     Levels own disjoint table rows, so each thread adds into its own levels' rows: no atomics, no per-thread
     copies of the (up to 49 MB) table gradient to reduce, and a deterministic result. Backward w.r.t. the
     coordinates (only when they require grad): a point-parallel pass that re-reads the 8 corner values per
@@ -50,6 +51,7 @@ HashGridBackend = Literal["auto", "cpu", "torch"]
 Resolution = int | tuple[int, int, int]
 LANES = 16  # points processed together in the kernels' inner loops
 _CHUNK = 512  # points per parallel task of the point-parallel kernels (a multiple of LANES)
+_LEVEL_CHUNK = 4096  # points per parallel task of the forward pass, which runs level by level (a multiple of LANES)
 
 
 @dataclass(frozen=True)
@@ -269,29 +271,40 @@ def _scatter_level(flat, grad_out, start, cnt, col0, rows, corner_w, n_feat):  #
 
 @njit(parallel=True, cache=True, nogil=True)
 def _encode_forward(u, table, scales, sizes, offsets, hashed, table_size, out):  # pragma: no cover - compiled
-    """u [3, N] (clamped), table [R, F] -> out [N, L * F]. One task per chunk of points, all levels."""
+    """u [3, N] (clamped), table [R, F] -> out [N, L * F]. One task per (level, chunk of _LEVEL_CHUNK points), level
+    by level, so that a thread reads one level's rows (up to 2^16 x 2 floats, about its L2 cache) for many points
+    in a row, as the table gradient's tasks do; callers hand tasks out singly (levels differ in cost)."""
     n = u.shape[1]
     n_levels = scales.shape[0]
     n_feat = table.shape[1]
     flat = table.reshape(-1)
     mask = np.int64(table_size - 1)
-    for chunk in prange((n + _CHUNK - 1) // _CHUNK):
-        cell = np.empty((3, LANES), dtype=np.int64)
-        frac = np.empty((3, LANES), dtype=np.float32)
-        rows = np.empty((8, LANES), dtype=np.uint64)
-        acc = np.empty((n_feat, LANES), dtype=np.float32)
-        for start in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK), LANES):
-            for lvl in range(n_levels):
-                _block_cells(u, start, n, scales, sizes, lvl, cell, frac)
-                if n_feat == 2:
-                    _block_rows(cell, sizes, lvl, offsets[lvl], hashed[lvl], mask, 2, rows)
-                    _gather_level(flat, frac, rows, 2, acc)
-                else:
-                    _block_rows(cell, sizes, lvl, offsets[lvl], hashed[lvl], mask, n_feat, rows)
-                    _gather_level(flat, frac, rows, n_feat, acc)
-                for k in range(min(LANES, n - start)):
-                    for f in range(n_feat):
-                        out[start + k, lvl * n_feat + f] = acc[f, k]
+    n_chunks = (n + _LEVEL_CHUNK - 1) // _LEVEL_CHUNK
+    for task in prange(n_levels * n_chunks):
+        lvl = task // n_chunks
+        chunk = task - lvl * n_chunks
+        stop = min(n, (chunk + 1) * _LEVEL_CHUNK)
+        if n_feat == 2:
+            _encode_level(u, flat, scales, sizes, offsets, hashed, mask, lvl, chunk * _LEVEL_CHUNK, stop, 2, out)
+        else:
+            _encode_level(u, flat, scales, sizes, offsets, hashed, mask, lvl, chunk * _LEVEL_CHUNK, stop, n_feat, out)
+
+
+@njit(cache=True, inline="always")
+def _encode_level(u, flat, scales, sizes, offsets, hashed, mask, lvl, first, stop, n_feat, out):  # pragma: no cover - compiled
+    """out[first:stop, level lvl's F columns]: the forward pass's task."""
+    n = u.shape[1]
+    cell = np.empty((3, LANES), dtype=np.int64)
+    frac = np.empty((3, LANES), dtype=np.float32)
+    rows = np.empty((8, LANES), dtype=np.uint64)
+    acc = np.empty((n_feat, LANES), dtype=np.float32)
+    for start in range(first, stop, LANES):
+        _block_cells(u, start, n, scales, sizes, lvl, cell, frac)
+        _block_rows(cell, sizes, lvl, offsets[lvl], hashed[lvl], mask, n_feat, rows)
+        _gather_level(flat, frac, rows, n_feat, acc)
+        for k in range(min(LANES, n - start)):
+            for f in range(n_feat):
+                out[start + k, lvl * n_feat + f] = acc[f, k]
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -440,7 +453,8 @@ class _HashEncodeCPU(torch.autograd.Function):
     def forward(ctx, coords: Tensor, table: Tensor, layout: GridLayout) -> Tensor:  # type: ignore[override]
         u = _unit_soa(coords)
         out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
-        _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
+        with numba.parallel_chunksize(1):
+            _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
         ctx.save_for_backward(coords, table)
         ctx.layout = layout
         ctx.unit_soa = u  # the backward reads the same clamped [3, N] copy (small), instead of making it again
@@ -547,7 +561,8 @@ class _HashEncodeSmoothCPU(torch.autograd.Function):
         n = coords.shape[0]
         u = _unit_soa(coords, jittered)  # [3, N + M]
         out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
-        _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
+        with numba.parallel_chunksize(1):
+            _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
         rows_np = rows.detach().cpu().numpy().astype(np.int64)
         change = np.empty((rows_np.shape[0], layout.out_dim), dtype=np.float32)  # G(u_i + d_i) - G(u_i)
         total = _change_rows(out, n, rows_np, change)
