@@ -70,22 +70,30 @@ class TileBins:
 
 @njit(cache=True, nogil=True)
 def _tile_rects(means2d, radii, tile_size, tiles_x, tiles_y):  # pragma: no cover - compiled
+    """Each Gaussian's tile rectangle and tile count, and the indices of the visible ones (both radii > 0), in one
+    pass over the projection's own arrays (float32 or float64 centres, any integer radii; the arithmetic in float64).
+    In numpy the conversions and the visibility test took ~0.7 ms at 18k Gaussians, ``all(axis=1)`` most of it."""
     n = means2d.shape[0]
     rects = np.empty((n, 4), dtype=np.int64)  # x0, x1, y0, y1 inclusive; empty when x1 < x0
     counts = np.zeros(n, dtype=np.int64)
+    visible = np.empty(n, dtype=np.int64)
+    n_visible = 0
     for g in range(n):
-        rx, ry = radii[g, 0], radii[g, 1]
+        rx, ry = np.int64(radii[g, 0]), np.int64(radii[g, 1])
         if rx <= 0 or ry <= 0:
             rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3] = 0, -1, 0, -1
             continue
-        x0 = max(0, int(math.floor((means2d[g, 0] - rx) / tile_size)))
-        x1 = min(tiles_x - 1, int(math.floor((means2d[g, 0] + rx) / tile_size)))
-        y0 = max(0, int(math.floor((means2d[g, 1] - ry) / tile_size)))
-        y1 = min(tiles_y - 1, int(math.floor((means2d[g, 1] + ry) / tile_size)))
+        visible[n_visible] = g
+        n_visible += 1
+        mx, my = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
+        x0 = max(0, int(math.floor((mx - rx) / tile_size)))
+        x1 = min(tiles_x - 1, int(math.floor((mx + rx) / tile_size)))
+        y0 = max(0, int(math.floor((my - ry) / tile_size)))
+        y1 = min(tiles_y - 1, int(math.floor((my + ry) / tile_size)))
         rects[g, 0], rects[g, 1], rects[g, 2], rects[g, 3] = x0, x1, y0, y1
         if x1 >= x0 and y1 >= y0:
             counts[g] = (x1 - x0 + 1) * (y1 - y0 + 1)
-    return rects, counts
+    return rects, counts, visible[:n_visible]
 
 
 _BIN_CHUNKS = 8  # contiguous slices of the depth order, binned in parallel
@@ -155,12 +163,10 @@ def depth_order(depths: np.ndarray, indices: np.ndarray) -> np.ndarray:
 def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16) -> TileBins:
     """Assign visible Gaussians to the tiles their bounding boxes touch, depth-sorted within each tile."""
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    m2 = means2d.detach().to(torch.float64).cpu().numpy()
-    rad = radii.detach().to(torch.int64).cpu().numpy()
-    visible = (rad > 0).all(axis=1)
-    vis_idx = np.nonzero(visible)[0]
+    m2 = np.ascontiguousarray(means2d.detach().cpu().numpy())
+    rad = np.ascontiguousarray(radii.detach().cpu().numpy())
+    rects, counts, vis_idx = _tile_rects(m2, rad, tile_size, tiles_x, tiles_y)
     order = depth_order(depths.detach().cpu().numpy(), vis_idx)
-    rects, counts = _tile_rects(m2, rad, tile_size, tiles_x, tiles_y)
     tile_offsets, isect_ids, gauss_offsets, slot_of_isect = _bin_sorted(rects, counts, order, tiles_x, tiles_x * tiles_y)
     return TileBins(tile_offsets, isect_ids, gauss_offsets, slot_of_isect, tiles_x, tiles_y, tile_size)
 

@@ -354,6 +354,41 @@ def test_depth_order_is_a_stable_depth_sort():
     assert depth_order(close, np.arange(2)).tolist() == [1, 0]
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bins_are_each_tiles_gaussians_front_to_back(dtype):
+    """``bin_gaussians`` against a loop: tile t lists the visible Gaussians (both radii > 0) whose box touches it,
+    by depth then index; Gaussian g's intersections sit at slots gauss_offsets[g]:gauss_offsets[g + 1], one per tile
+    in row-major tile order. Centres off the image, zero radii and the projection's int32 radii included."""
+    import numpy as np
+
+    from pidg.render.rasterize_cpu import bin_gaussians
+
+    gen = torch.Generator().manual_seed(5)
+    n, width, height, ts = 300, 70, 45, 16
+    means2d = (torch.rand(n, 2, generator=gen) * torch.tensor([width + 40.0, height + 40.0]) - 20.0).to(dtype)
+    radii = torch.randint(0, 12, (n, 2), generator=gen, dtype=torch.int32)
+    depths = torch.randint(1, 20, (n,), generator=gen).to(torch.float32)  # ties: index order decides
+    bins = bin_gaussians(means2d, radii, depths, width, height, ts)
+    tiles_x, tiles_y = -(-width // ts), -(-height // ts)
+    m, r = means2d.double().numpy(), radii.numpy()
+    lists = [[] for _ in range(tiles_x * tiles_y)]
+    for g in sorted(range(n), key=lambda g: (float(depths[g]), g)):
+        if r[g, 0] <= 0 or r[g, 1] <= 0:
+            continue
+        x0, x1 = max(0, math.floor((m[g, 0] - r[g, 0]) / ts)), min(tiles_x - 1, math.floor((m[g, 0] + r[g, 0]) / ts))
+        y0, y1 = max(0, math.floor((m[g, 1] - r[g, 1]) / ts)), min(tiles_y - 1, math.floor((m[g, 1] + r[g, 1]) / ts))
+        for ty in range(y0, y1 + 1):
+            for tx in range(x0, x1 + 1):
+                lists[ty * tiles_x + tx].append(g)
+    got = [bins.isect_ids[bins.tile_offsets[t]:bins.tile_offsets[t + 1]].tolist() for t in range(tiles_x * tiles_y)]
+    assert got == lists and any(len(x) > 1 for x in lists)
+    slots = np.sort(bins.slot_of_isect)
+    assert np.array_equal(slots, np.arange(bins.num_intersections))  # every slot once
+    for g in range(n):  # a Gaussian's slots hold its own intersections
+        mine = np.nonzero(bins.isect_ids == g)[0]
+        assert sorted(bins.slot_of_isect[mine].tolist()) == list(range(bins.gauss_offsets[g], bins.gauss_offsets[g + 1]))
+
+
 @pytest.mark.parametrize("n_features", [0, 3])
 def test_finish_image_is_the_torch_arithmetic(n_features):
     """``finish_image_cpu`` (rgb over the background, depth, features as separate arrays, in one pass): its outputs
