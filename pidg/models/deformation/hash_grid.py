@@ -273,7 +273,7 @@ def _scatter_level(flat, grad_out, start, cnt, col0, rows, corner_w, n_feat):  #
 def _encode_forward(u, table, scales, sizes, offsets, hashed, table_size, out):  # pragma: no cover - compiled
     """u [3, N] (clamped), table [R, F] -> out [N, L * F]. One task per (level, chunk of _LEVEL_CHUNK points), level
     by level, so that a thread reads one level's rows (up to 2^16 x 2 floats, about its L2 cache) for many points
-    in a row, as the table gradient's tasks do; callers hand tasks out singly (levels differ in cost)."""
+    in a row, as the table gradient's tasks do; ``_encode`` hands the tasks out singly (levels differ in cost)."""
     n = u.shape[1]
     n_levels = scales.shape[0]
     n_feat = table.shape[1]
@@ -448,13 +448,19 @@ def _unit_soa(*blocks: Tensor) -> np.ndarray:
     return u
 
 
+def _encode(u: np.ndarray, table: Tensor, layout: GridLayout) -> np.ndarray:
+    """The forward kernel's features [N, L * F] of the clamped points ``u`` [3, N], its tasks handed out singly."""
+    out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
+    with numba.parallel_chunksize(1):
+        _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
+    return out
+
+
 class _HashEncodeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coords: Tensor, table: Tensor, layout: GridLayout) -> Tensor:  # type: ignore[override]
         u = _unit_soa(coords)
-        out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
-        with numba.parallel_chunksize(1):
-            _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
+        out = _encode(u, table, layout)
         ctx.save_for_backward(coords, table)
         ctx.layout = layout
         ctx.unit_soa = u  # the backward reads the same clamped [3, N] copy (small), instead of making it again
@@ -560,9 +566,7 @@ class _HashEncodeSmoothCPU(torch.autograd.Function):
     def forward(ctx, coords: Tensor, jittered: Tensor, rows: Tensor, table: Tensor, layout: GridLayout):  # type: ignore[override]
         n = coords.shape[0]
         u = _unit_soa(coords, jittered)  # [3, N + M]
-        out = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
-        with numba.parallel_chunksize(1):
-            _encode_forward(u, float32_array(table), layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size, out)
+        out = _encode(u, table, layout)
         rows_np = rows.detach().cpu().numpy().astype(np.int64)
         change = np.empty((rows_np.shape[0], layout.out_dim), dtype=np.float32)  # G(u_i + d_i) - G(u_i)
         total = _change_rows(out, n, rows_np, change)
