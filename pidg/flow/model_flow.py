@@ -22,8 +22,7 @@ from pidg.flow.preprocess import FlowPair
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import Camera, RenderOutput
-from pidg.render.api import project
-from pidg.render.footprint import footprints_touching
+from pidg.render.api import gaussians_reaching, project
 
 
 def interval_velocity(
@@ -82,8 +81,9 @@ def supervised_flow_channels(
     integration: VelocityIntegration = "euler",
 ) -> Tensor:
     """:func:`flow_channels` [N, C] for a loss that reads the rendered flows only at ``supervised`` pixels [H, W]
-    of camera t: rows of Gaussians whose footprint misses them all are zero (they add nothing there, see
-    :mod:`pidg.render.footprint`), so the deformation to t+1 (``t1``), the velocities and the flow channels are
+    of camera t: rows of Gaussians that add nothing there are zero (:func:`pidg.render.api.gaussians_reaching`: on
+    the cpu backend those the compositor gives no weight at any of them, hidden or too faint; elsewhere those whose
+    footprint misses them all), so the deformation to t+1 (``t1``), the velocities and the flow channels are
     computed, and differentiated, for the others only. The loss and its gradients are those of the full channels.
     ``deforming`` False (a static warm-up): the Gaussians at t+1 are the canonical ones. ``camera_t1``: as in
     :func:`flow_channels`. ``depth_change``: with the depth-change channels (:mod:`pidg.flow.gaussian_flow`).
@@ -94,7 +94,7 @@ def supervised_flow_channels(
     with torch.no_grad():
         g = model.gaussians
         proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera, model.backend)
-        rows = footprints_touching(proj.means2d, proj.radii, supervised.to(proj.means2d.device)).nonzero().squeeze(1)
+        rows = gaussians_reaching(proj, g.opacities, supervised.to(proj.means2d.device), model.backend).nonzero().squeeze(1)
     out = state_t.means.new_zeros(n, channels)
     if rows.numel() == 0:
         return out

@@ -17,7 +17,8 @@ from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
 from pidg.render.projection import Projection, project_gaussians, tile_grid
 from pidg.render.projection_cpu import project_and_shade_cpu
-from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu
+from pidg.render.footprint import footprints_touching
+from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu, gaussians_reaching_cpu
 from pidg.render.rasterize_gsplat import rasterize_gsplat
 from pidg.render.rasterize_torch import channels_below, composite_reference
 from pidg.render.sh import sh_to_rgb
@@ -115,6 +116,24 @@ def project(
     if resolve_backend(backend, means.device) == "cpu" and means.dtype == torch.float32:
         return project_and_shade_cpu(means, quats, scales, opacities, means.new_zeros(means.shape[0], 3), camera, None)[0]
     return project_gaussians(means, quats, scales, opacities, camera)
+
+
+def gaussians_reaching(
+    proj: Projection, opacities: Tensor, pixels: Tensor, backend: RenderBackend = "auto", tile_size: int = TILE_SIZE
+) -> Tensor:
+    """[N] bool: the Gaussians of a projection (``project`` with the same ``backend``) that can add to a pixel of
+    ``pixels`` [H, W] (bool) in ``rasterize``'s render, so a loss on those pixels can skip the others' per-Gaussian
+    work. On the cpu backend (float32) the set is exact, the compositor's own weights (hidden and too faint
+    Gaussians are left out: ``gaussians_reaching_cpu``); elsewhere it is the footprint boxes' superset
+    (``footprints_touching``). Either way the others add exactly nothing at those pixels."""
+    touching = footprints_touching(proj.means2d, proj.radii, pixels)
+    if opacities.dim() == 2 and opacities.shape[-1] == 1:  # as rasterize takes them
+        opacities = opacities.squeeze(-1)
+    if resolve_backend(backend, proj.means2d.device) != "cpu" or proj.means2d.dtype != torch.float32:
+        return touching
+    # only Gaussians whose box holds a pixel can add to it: the others are culled (radius 0) before the binning
+    radii = torch.where(touching.unsqueeze(-1), proj.radii, torch.zeros((), dtype=proj.radii.dtype))
+    return gaussians_reaching_cpu(proj.means2d, proj.conics, opacities, proj.depths, radii, pixels, tile_size)
 
 
 def rasterize(

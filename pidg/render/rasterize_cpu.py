@@ -22,6 +22,8 @@ Pipeline, with no Python loop over Gaussians:
      whatever the thread schedule.
   4. ``finish_image_cpu``: the composited channels become rgb over the background, depth and the feature channels,
      each a contiguous array, in one pass; its backward assembles the image's gradient in one pass too.
+  5. ``gaussians_reaching_cpu`` (not part of a render): the forward pass's hit and stop rules on a pixel mask only,
+     marking the Gaussians that add to it, so a loss on a few pixels can skip the others' per-Gaussian work.
 Arithmetic is float32 like gsplat (inputs are converted; outputs come back in the input dtype), with the
 exp approximation accurate to 5e-7 relative; the torch reference is the float64-exact implementation.
 """
@@ -352,6 +354,89 @@ def _forward_tiles(
                 out_end[py, px] = np.int32(stop[lane])
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _reaching_tiles(
+    means2d, conics, opacities, tile_offsets, isect_ids, slot_of_isect, tiles, pixels, width, height, tile_size, tiles_x,
+    reached,
+):  # pragma: no cover - compiled
+    """``reached[slot]`` = 1 for each (tile, Gaussian) intersection that adds to one of ``pixels`` [H, W] (uint8) in
+    the listed ``tiles``: ``_forward_tiles``' cull, hit and stop rules line for line, with the lanes of the other
+    pixels closed from the start (a pixel's sums never depend on another's) and no channels composited."""
+    for i in prange(tiles.shape[0]):
+        tile = tiles[i]
+        start, end = tile_offsets[tile], tile_offsets[tile + 1]
+        n_k = end - start
+        if n_k == 0:
+            continue
+        ty = tile // tiles_x
+        tx = tile - ty * tiles_x
+        x_lo, y_lo = tx * tile_size, ty * tile_size
+        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
+        n_lanes = x_hi - x_lo
+        table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
+        no_channels = np.empty((n_k, 0), dtype=np.float32)  # the table fill's feature arrays, with none to copy
+        filled = 0
+        misses = np.empty(CULL_BLOCK, dtype=np.float32)
+        hits = np.empty(CULL_BLOCK, dtype=np.int64)
+        trans = np.empty(LANES, dtype=np.float32)
+        live = np.empty(LANES, dtype=np.float32)
+        added = np.empty(LANES, dtype=np.float32)
+        xs = np.empty(LANES, dtype=np.float32)
+        for lane in range(LANES):
+            xs[lane] = f32(lane) + f32(0.5)
+        for py in range(y_lo, y_hi):
+            pyc = f32(py) + f32(0.5)
+            n_live = f32(0.0)
+            for lane in range(LANES):
+                trans[lane] = 1.0
+                live[lane] = f32(1.0) if lane < n_lanes and pixels[py, x_lo + lane] != 0 else f32(0.0)
+                n_live += live[lane]
+            if n_live == f32(0.0):
+                continue
+            for k0 in range(0, n_k, CULL_BLOCK):
+                if k0 == filled:
+                    filled = min(filled + FILL_BLOCK, table.shape[1])
+                    _fill_tile(means2d, conics, opacities, no_channels, isect_ids, start, x_lo, k0, filled, table, no_channels)
+                n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
+                for j in range(n_hits):
+                    k = hits[j]
+                    mx, dy = table[_MX, k], table[_MY, k] - pyc
+                    a, b, o, threshold = table[_CA, k], table[_CB, k], table[_OP, k], table[_TH, k]
+                    c_term = f32(-0.5) * table[_CC, k] * dy * dy
+                    for lane in range(LANES):  # vectorised as the forward pass's: no reduction in this loop
+                        dx = mx - xs[lane]
+                        power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
+                        alpha = min(f32(ALPHA_MAX), o * exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0))))
+                        t = trans[lane]
+                        hit = (live[lane] > f32(0.0)) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
+                        next_trans = t * (f32(1.0) - alpha)
+                        adds = f32(hit & (next_trans >= f32(TRANSMITTANCE_MIN)))
+                        saturates = f32(hit & (next_trans < f32(TRANSMITTANCE_MIN)))
+                        live[lane] = live[lane] * (f32(1.0) - saturates)
+                        trans[lane] = _blend(adds, next_trans, t)
+                        added[lane] = adds
+                    n_adds = f32(0.0)
+                    for lane in range(LANES):
+                        n_adds += added[lane]
+                    if n_adds > f32(0.0):
+                        reached[slot_of_isect[start + k]] = 1
+                n_live = f32(0.0)
+                for lane in range(LANES):
+                    n_live += live[lane]
+                if n_live == f32(0.0):
+                    break
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _any_per_gaussian(reached, gauss_offsets, out):  # pragma: no cover - compiled
+    """out[g] = whether any of Gaussian g's intersection slots is set."""
+    for g in prange(gauss_offsets.shape[0] - 1):
+        found = False
+        for i in range(gauss_offsets[g], gauss_offsets[g + 1]):
+            found = found or reached[i] != 0
+        out[g] = found
+
+
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
     means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x,
@@ -631,6 +716,39 @@ def composite_cpu(
     else:
         tile_dims = np.minimum(tile_channels.detach().cpu().numpy().astype(np.int64).reshape(-1), dim)
     return _CompositeCPU.apply(means2d, conics, opacities, features, bins, width, height, tile_dims)
+
+
+@torch.no_grad()
+def gaussians_reaching_cpu(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor, pixels: Tensor, tile_size: int = 16,
+) -> Tensor:
+    """[N] bool: the Gaussians that add to a pixel of ``pixels`` [H, W] (bool) in ``composite_cpu``'s render of
+    these screen-space Gaussians (a non-zero weight alpha T there), by its own float32 arithmetic, so the set is
+    exact: a Gaussian outside it gets no gradient from those pixels and changes nothing there.
+
+    Used to skip per-Gaussian work for a loss that reads a few pixels (the flow loss). Gaussians hidden behind
+    opaque ones, or whose alpha stays under 1/255 there, are left out, which a footprint test cannot see. Gaussians
+    whose radius is 0 are culled, as in the render: pass 0 radii to leave out Gaussians known to miss the pixels
+    (their boxes hold none), which makes the binning cheaper and changes nothing at those pixels."""
+    height, width = pixels.shape
+    if means2d.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.bool)
+    if tile_size > LANES:
+        raise ValueError(f"the CPU kernel supports tiles up to {LANES} pixels wide, got {tile_size}")
+    bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
+    mask = pixels.detach().to(device="cpu", dtype=torch.bool)
+    padded = torch.nn.functional.pad(mask, (0, bins.tiles_x * tile_size - width, 0, bins.tiles_y * tile_size - height))
+    tiles = padded.reshape(bins.tiles_y, tile_size, bins.tiles_x, tile_size).any(dim=3).any(dim=1).reshape(-1)
+    reached = np.zeros(bins.num_intersections, dtype=np.uint8)
+    with numba.parallel_chunksize(1):
+        _reaching_tiles(
+            float32_array(means2d), float32_array(conics), float32_array(opacities), bins.tile_offsets, bins.isect_ids,
+            bins.slot_of_isect, tiles.nonzero().squeeze(1).numpy(), mask.numpy().view(np.uint8), width, height,
+            tile_size, bins.tiles_x, reached,
+        )
+    out = np.empty(means2d.shape[0], dtype=np.bool_)
+    _any_per_gaussian(reached, bins.gauss_offsets, out)
+    return torch.from_numpy(out)
 
 
 def count_pixel_gaussian_pairs(bins: TileBins, width: int, height: int) -> int:

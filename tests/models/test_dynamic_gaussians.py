@@ -112,8 +112,8 @@ def test_velocity_flow_advects_by_the_time_axis(scene):
     assert drawn.sum() > 0.5 * model.num_gaussians and (uv_v - uv)[drawn].norm(dim=-1).max() > 0.01
 
 
-def test_flow_channels_of_the_supervised_footprints_give_the_full_loss_and_gradients(scene):
-    """Only Gaussians whose footprint reaches a supervised pixel get flow channels: the rendered flows at those
+def test_flow_channels_of_the_gaussians_reaching_the_supervised_pixels_give_the_full_loss_and_gradients(scene):
+    """Only Gaussians the compositor weights on a supervised pixel get flow channels: the rendered flows at those
     pixels, the flow loss and every parameter's gradient equal those of the channels of all Gaussians."""
     from pidg.flow import FlowConfig, decode_flows, flow_channels, lpfm_loss, supervised_flow_channels
     from pidg.flow.decomposition import FlowTarget
