@@ -736,7 +736,7 @@ def gaussians_reaching_cpu(
     if tile_size > LANES:
         raise ValueError(f"the CPU kernel supports tiles up to {LANES} pixels wide, got {tile_size}")
     bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
-    mask = pixels.detach().to(device="cpu", dtype=torch.bool)
+    mask = pixels.detach().to(device="cpu", dtype=torch.bool).contiguous()
     padded = torch.nn.functional.pad(mask, (0, bins.tiles_x * tile_size - width, 0, bins.tiles_y * tile_size - height))
     tiles = padded.reshape(bins.tiles_y, tile_size, bins.tiles_x, tile_size).any(dim=3).any(dim=1).reshape(-1)
     reached = np.zeros(bins.num_intersections, dtype=np.uint8)
