@@ -269,6 +269,41 @@ def _cull_block(table, k0, k_limit, pyc, n_lanes, misses, hits):  # pragma: no c
     return count
 
 
+@njit(cache=True, inline="always")
+def _tile_box(tile, tiles_x, tile_size, width, height):  # pragma: no cover - compiled
+    """Tile ``tile``'s pixels (row-major tiles): x_lo, y_lo, x_hi, y_hi (exclusive) and its row's lane count."""
+    ty = tile // tiles_x
+    tx = tile - ty * tiles_x
+    x_lo, y_lo = tx * tile_size, ty * tile_size
+    x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
+    return x_lo, y_lo, x_hi, y_hi, x_hi - x_lo
+
+
+@njit(cache=True, inline="always")
+def _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight):  # pragma: no cover - compiled
+    """Gaussian k of a tile's table over one row's lanes, front to back: weight[lane] = its alpha x transmittance
+    where it adds to the pixel, else 0 (it misses the pixel, the pixel is closed, or it would take the
+    transmittance below 1e-4, which closes the pixel); trans, live and stop (the end of the pixel's contributing
+    prefix in the tile list) move on. The forward pass and the reaching pass share it, so they agree bit for bit."""
+    mx, dy = table[_MX, k], table[_MY, k] - pyc
+    a, b, o, threshold = table[_CA, k], table[_CB, k], table[_OP, k], table[_TH, k]
+    c_term = f32(-0.5) * table[_CC, k] * dy * dy
+    end_if_added = f32(k + 1)
+    for lane in range(LANES):  # vectorised: no branches, and every store unconditional
+        dx = mx - xs[lane]
+        power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
+        alpha = min(f32(ALPHA_MAX), o * exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0))))
+        t = trans[lane]
+        hit = (live[lane] > f32(0.0)) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
+        next_trans = t * (f32(1.0) - alpha)
+        adds = f32(hit & (next_trans >= f32(TRANSMITTANCE_MIN)))
+        saturates = f32(hit & (next_trans < f32(TRANSMITTANCE_MIN)))  # the pixel is done
+        live[lane] = live[lane] * (f32(1.0) - saturates)
+        weight[lane] = alpha * t * adds
+        trans[lane] = _blend(adds, next_trans, t)
+        stop[lane] = _blend(adds, end_if_added, stop[lane])
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def _forward_tiles(
     means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x, out_img,
@@ -278,11 +313,7 @@ def _forward_tiles(
     for tile in prange(n_tiles):
         dim = tile_dims[tile]  # channels composited in this tile; the others are written as 0
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
-        ty = tile // tiles_x
-        tx = tile - ty * tiles_x
-        x_lo, y_lo = tx * tile_size, ty * tile_size
-        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
-        n_lanes = x_hi - x_lo
+        x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
         n_k = end - start
         table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
         tfeat = np.empty((n_k, dim), dtype=np.float32)
@@ -317,23 +348,7 @@ def _forward_tiles(
                 n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
                 for i in range(n_hits):
                     k = hits[i]
-                    mx, dy = table[_MX, k], table[_MY, k] - pyc
-                    a, b, o, threshold = table[_CA, k], table[_CB, k], table[_OP, k], table[_TH, k]
-                    c_term = f32(-0.5) * table[_CC, k] * dy * dy
-                    end_if_added = f32(k + 1)
-                    for lane in range(LANES):  # vectorised: no branches, and every store unconditional
-                        dx = mx - xs[lane]
-                        power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
-                        alpha = min(f32(ALPHA_MAX), o * exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0))))
-                        t = trans[lane]
-                        hit = (live[lane] > f32(0.0)) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
-                        next_trans = t * (f32(1.0) - alpha)
-                        adds = f32(hit & (next_trans >= f32(TRANSMITTANCE_MIN)))
-                        saturates = f32(hit & (next_trans < f32(TRANSMITTANCE_MIN)))  # the pixel is done
-                        live[lane] = live[lane] * (f32(1.0) - saturates)
-                        weight[lane] = alpha * t * adds
-                        trans[lane] = _blend(adds, next_trans, t)
-                        stop[lane] = _blend(adds, end_if_added, stop[lane])
+                    _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight)
                     for d in range(dim):
                         f = tfeat[k, d]
                         for lane in range(feature_lanes):
@@ -360,7 +375,7 @@ def _reaching_tiles(
     reached,
 ):  # pragma: no cover - compiled
     """``reached[slot]`` = 1 for each (tile, Gaussian) intersection that adds to one of ``pixels`` [H, W] (uint8) in
-    the listed ``tiles``: ``_forward_tiles``' cull, hit and stop rules line for line, with the lanes of the other
+    the listed ``tiles``: ``_forward_tiles``' cull and lane pass (``_add_to_lanes``), with the lanes of the other
     pixels closed from the start (a pixel's sums never depend on another's) and no channels composited."""
     for i in prange(tiles.shape[0]):
         tile = tiles[i]
@@ -368,11 +383,7 @@ def _reaching_tiles(
         n_k = end - start
         if n_k == 0:
             continue
-        ty = tile // tiles_x
-        tx = tile - ty * tiles_x
-        x_lo, y_lo = tx * tile_size, ty * tile_size
-        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
-        n_lanes = x_hi - x_lo
+        x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
         table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
         no_channels = np.empty((n_k, 0), dtype=np.float32)  # the table fill's feature arrays, with none to copy
         filled = 0
@@ -380,7 +391,8 @@ def _reaching_tiles(
         hits = np.empty(CULL_BLOCK, dtype=np.int64)
         trans = np.empty(LANES, dtype=np.float32)
         live = np.empty(LANES, dtype=np.float32)
-        added = np.empty(LANES, dtype=np.float32)
+        weight = np.empty(LANES, dtype=np.float32)
+        stop = np.empty(LANES, dtype=np.float32)  # the lane pass's prefix ends, which nothing here reads
         xs = np.empty(LANES, dtype=np.float32)
         for lane in range(LANES):
             xs[lane] = f32(lane) + f32(0.5)
@@ -389,6 +401,7 @@ def _reaching_tiles(
             n_live = f32(0.0)
             for lane in range(LANES):
                 trans[lane] = 1.0
+                stop[lane] = 0.0
                 live[lane] = f32(1.0) if lane < n_lanes and pixels[py, x_lo + lane] != 0 else f32(0.0)
                 n_live += live[lane]
             if n_live == f32(0.0):
@@ -400,25 +413,11 @@ def _reaching_tiles(
                 n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
                 for j in range(n_hits):
                     k = hits[j]
-                    mx, dy = table[_MX, k], table[_MY, k] - pyc
-                    a, b, o, threshold = table[_CA, k], table[_CB, k], table[_OP, k], table[_TH, k]
-                    c_term = f32(-0.5) * table[_CC, k] * dy * dy
-                    for lane in range(LANES):  # vectorised as the forward pass's: no reduction in this loop
-                        dx = mx - xs[lane]
-                        power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
-                        alpha = min(f32(ALPHA_MAX), o * exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0))))
-                        t = trans[lane]
-                        hit = (live[lane] > f32(0.0)) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
-                        next_trans = t * (f32(1.0) - alpha)
-                        adds = f32(hit & (next_trans >= f32(TRANSMITTANCE_MIN)))
-                        saturates = f32(hit & (next_trans < f32(TRANSMITTANCE_MIN)))
-                        live[lane] = live[lane] * (f32(1.0) - saturates)
-                        trans[lane] = _blend(adds, next_trans, t)
-                        added[lane] = adds
-                    n_adds = f32(0.0)
+                    _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight)
+                    total = f32(0.0)  # (summed apart from the lane pass, which a reduction would keep scalar)
                     for lane in range(LANES):
-                        n_adds += added[lane]
-                    if n_adds > f32(0.0):
+                        total += weight[lane]
+                    if total > f32(0.0):  # a weight that adds is at least 1/255 x 1e-4
                         reached[slot_of_isect[start + k]] = 1
                 n_live = f32(0.0)
                 for lane in range(LANES):
@@ -457,11 +456,7 @@ def _backward_tiles(
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         if end == start:
             continue
-        ty = tile // tiles_x
-        tx = tile - ty * tiles_x
-        x_lo, y_lo = tx * tile_size, ty * tile_size
-        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
-        n_lanes = x_hi - x_lo
+        x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
         feature_lanes = max(n_lanes, LANES)  # 16, as a value the compiler cannot unroll (see _forward_tiles)
         n_k = end - start
         table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
