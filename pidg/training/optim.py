@@ -40,13 +40,17 @@ class ScheduledOptimizer:
     start: int = 0
 
     def step(self, step: int, lr_scale: float = 1.0) -> None:
-        """Set each group's rate for ``step`` (times ``lr_scale``, which rollbacks after a divergence lower), step
-        (once started), and clear the gradients."""
+        """Set each group's rate for ``step`` (times ``lr_scale``, which rollbacks after a divergence lower) and step
+        (once started). The gradients stay until ``zero_grad``: the trainer reads them to name the cause when the
+        updated parameters are not finite."""
         if step >= self.start:
             for group in self.optimizer.param_groups:
                 lr = self.schedule(step, group["base_lr"])
                 group["lr"] = lr if lr_scale == 1.0 else lr * lr_scale
             self.optimizer.step()
+
+    def zero_grad(self) -> None:
+        """Clear the gradients (those that arrived before ``start`` are dropped here unused)."""
         self.optimizer.zero_grad(set_to_none=True)
 
     def load_state_dict(self, state: dict) -> None:

@@ -196,11 +196,14 @@ class Trainer:
         self.strategy.step_pre_backward(out)
         with timer.phase("backward"):
             loss.backward()
-        _check_finite("gradients", self._named_parameters(), step, grads=True)
         with timer.phase("optimizer"):
             for optimizer in self.optimizers.values():
                 optimizer.step(step, self.lr_scale)
-        _check_finite("parameters after the optimizer step", self._named_parameters(), step)
+        try:
+            self._check_update(step)
+        finally:
+            for optimizer in self.optimizers.values():
+                optimizer.zero_grad()
         with timer.phase("densification"):
             report = self.strategy.step_post_backward(
                 model.gaussians, self.gaussian_optimizers(), self.densify_state, step, out, frame.width, frame.height
@@ -214,6 +217,18 @@ class Trainer:
             parts["densified"] = 1.0
         self.step += 1
         return parts
+
+    def _check_update(self, step: int) -> None:
+        """Raise NonFiniteError if the step left a parameter non-finite, naming the gradients when they were the
+        cause. Adam's update is elementwise, so a NaN or infinite gradient makes its parameter's entries non-finite
+        too: one pass over the parameters finds both, and the gradients (still there) are read only then (a pass
+        over every gradient cost ~1.7 ms a step at 18k Gaussians)."""
+        named = self._named_parameters()
+        try:
+            _check_finite("parameters after the optimizer step", named, step)
+        except NonFiniteError:
+            _check_finite("gradients", named, step, grads=True)
+            raise
 
     def _named_parameters(self) -> list[tuple[str, Tensor]]:
         """Every optimised tensor with a name for messages."""

@@ -86,6 +86,27 @@ def test_non_finite_parameters_after_the_optimizer_step_roll_back(small_scene, s
     assert poisoned == [5] and summary["rollbacks"] == 1 and summary["iterations"] == 10
 
 
+def test_a_nan_gradient_under_a_finite_loss_rolls_back_naming_the_gradient(small_scene, small_config, tmp_path, monkeypatch):
+    """From step 6 the positions' gradient is NaN while the loss stays finite: the step is found (through the
+    parameters it makes non-finite) and named by its gradient; the stale gradients are cleared for the retry."""
+    original = losses.PhotometricLoss.loss
+
+    def loss(self, inputs, render, features):
+        value, scalars = original(self, inputs, render, features)
+        if inputs.step >= 6:
+            means = inputs.model.gaussians.params["means"] * 1.0
+            means.register_hook(lambda grad: grad * float("nan"))
+            value = value + 0.0 * means.sum()
+        return value, scalars
+
+    monkeypatch.setattr(losses.PhotometricLoss, "loss", loss)
+    trainer = Trainer(small_config(tmp_path, max_rollbacks=1), small_scene)
+    with pytest.raises(TrainingFailed, match=r"diverged at step 6: non-finite gradients at step 6 in gaussians\.means\b.*after 1 rollback"):
+        trainer.train()
+    assert finite_checkpoint_step(tmp_path / "checkpoint.pt") == 4
+    assert all(p.grad is None for _, p in trainer._named_parameters())
+
+
 def test_an_error_keeps_the_last_good_checkpoint_and_names_both_files(small_scene, small_config, tmp_path, monkeypatch):
     trainer = Trainer(small_config(tmp_path), small_scene)
     original = trainer.train_step
