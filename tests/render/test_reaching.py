@@ -58,6 +58,30 @@ def test_cpu_set_is_exactly_the_gaussians_the_compositor_weights_there(density, 
         assert not found.any()
 
 
+def test_ties_culled_and_huge_gaussians():
+    """Exact copies (equal depths: the tile lists break ties by index), Gaussians behind the camera (culled) and
+    one that covers the whole image: the set still equals the compositor's own weights."""
+    camera = orbit_camera(45, 33)
+    base = random_scene(150, camera, pixel_sigma=(1.0, 8.0), opacity=(0.5, 0.99), extent=0.4, seed=11)
+    centre = torch.linalg.inv(camera.world_to_camera)[:3, 3]
+    behind = centre + (centre - torch.zeros(3)) * torch.tensor([[0.1], [0.3], [0.6]])  # beyond the camera, away from the scene
+    means = torch.cat([base.means, base.means[:20], behind, torch.zeros(1, 3)])
+    k = means.shape[0] - base.means.shape[0]
+    scene = GaussianScene(
+        means=means,
+        quats=torch.cat([base.quats, base.quats[:20], torch.tensor([[1.0, 0, 0, 0]] * 4)]),
+        scales=torch.cat([base.scales, base.scales[:20], torch.full((3, 3), 0.05), torch.full((1, 3), 3.0)]),
+        opacities=torch.cat([base.opacities, base.opacities[:20], torch.full((3,), 0.9), torch.tensor([0.05])]),
+        colors=torch.rand(means.shape[0], 3), features=None,
+    )
+    assert k == 24
+    for density in (0.05, 0.6):
+        pixels = pixel_mask(camera, density, seed=4)
+        found = reaching(scene, camera, pixels)
+        assert torch.equal(found, weighted_on(scene, camera, pixels, "cpu"))
+        assert not found[170:173].any() and bool(found[173])  # the culled ones never, the huge faint one here
+
+
 def test_a_gaussian_behind_an_opaque_one_is_left_out():
     """A stack of three large near-opaque Gaussians on the camera's axis in front of a small one: the pixels at the
     centre saturate on the stack (transmittance ~1e-6), so the one behind adds nothing there, though its footprint
