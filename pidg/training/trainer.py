@@ -222,7 +222,7 @@ class Trainer:
         """Raise NonFiniteError if the step left a parameter non-finite, naming the gradients when they were the
         cause. Adam's update is elementwise, so a NaN or infinite gradient makes its parameter's entries non-finite
         too: one pass over the parameters finds both, and the gradients (still there) are read only then (a pass
-        over every gradient cost ~1.7 ms a step at 18k Gaussians)."""
+        over every gradient cost 1-1.7 ms a step at 18k Gaussians)."""
         named = self._named_parameters()
         try:
             _check_finite("parameters after the optimizer step", named, step)
