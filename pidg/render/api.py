@@ -9,13 +9,12 @@ import dataclasses
 from typing import Literal, get_args
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
-from pidg.render.projection import Projection, project_gaussians, tile_grid
+from pidg.render.projection import Projection, project_gaussians, tiles_touched
 from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.footprint import footprints_touching
 from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu, gaussians_reaching_cpu
@@ -89,15 +88,6 @@ def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cp
     if backend == "gsplat" and device.type != "cuda":
         raise ValueError("rasterize: the gsplat backend needs CUDA tensors")
     return backend  # type: ignore[return-value]
-
-
-def tiles_touched(pixels: Tensor, tile_size: int = TILE_SIZE) -> Tensor:
-    """[tiles_y, tiles_x] bool: the rasterizer's tiles that hold a True pixel of ``pixels`` [H, W] (bool)."""
-    height, width = pixels.shape
-    tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    padded = F.pad(pixels.to(torch.bool), (0, tiles_x * tile_size - width, 0, tiles_y * tile_size - height))
-    # two any() passes, the contiguous axis first: a third of the time of one float amax over both axes
-    return padded.reshape(tiles_y, tile_size, tiles_x, tile_size).any(dim=3).any(dim=1)
 
 
 def feature_tile_channels(feature_pixels: Tensor, always: int, n_features: int, tile_size: int = TILE_SIZE) -> Tensor:

@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from pidg.render.camera import Camera
@@ -166,3 +167,12 @@ def project_gaussians(
 def tile_grid(width: int, height: int, tile_size: int) -> tuple[int, int]:
     """Number of tiles along x and y."""
     return math.ceil(width / tile_size), math.ceil(height / tile_size)
+
+
+def tiles_touched(pixels: Tensor, tile_size: int) -> Tensor:
+    """[tiles_y, tiles_x] bool: the rasterizer's tiles that hold a True pixel of ``pixels`` [H, W] (bool)."""
+    height, width = pixels.shape
+    tiles_x, tiles_y = tile_grid(width, height, tile_size)
+    padded = F.pad(pixels.to(torch.bool), (0, tiles_x * tile_size - width, 0, tiles_y * tile_size - height))
+    # two any() passes, the contiguous axis first: a third of the time of one float amax over both axes
+    return padded.reshape(tiles_y, tile_size, tiles_x, tile_size).any(dim=3).any(dim=1)

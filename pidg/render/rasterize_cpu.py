@@ -39,7 +39,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from pidg.kernel_math import exp_nonpositive_unclamped, float32_array
-from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, tile_grid
+from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, tile_grid, tiles_touched
 
 _N_PARAMS = 6  # gradient slots per Gaussian before its features: mean x, mean y, conic a, b, c, opacity
 LANES = 16  # pixels of a tile row processed together; the tile size may not exceed it
@@ -732,8 +732,7 @@ def gaussians_reaching_cpu(
         raise ValueError(f"the CPU kernel supports tiles up to {LANES} pixels wide, got {tile_size}")
     bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
     mask = pixels.detach().to(device="cpu", dtype=torch.bool).contiguous()
-    padded = torch.nn.functional.pad(mask, (0, bins.tiles_x * tile_size - width, 0, bins.tiles_y * tile_size - height))
-    tiles = padded.reshape(bins.tiles_y, tile_size, bins.tiles_x, tile_size).any(dim=3).any(dim=1).reshape(-1)
+    tiles = tiles_touched(mask, tile_size).reshape(-1)
     reached = np.zeros(bins.num_intersections, dtype=np.uint8)
     with numba.parallel_chunksize(1):
         _reaching_tiles(
