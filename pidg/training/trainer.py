@@ -299,7 +299,8 @@ class Trainer:
                         # every step: numba's thread pool, started by the first kernel, resets OpenMP's count
                         torch.set_num_threads(cfg.cpu_torch_threads)
                     try:
-                        parts = self.train_step(log=self._logs(self.step + 1, total))
+                        logs = self._logs(self.step + 1, total)
+                        parts = self.train_step(log=logs)
                     except NonFiniteError as err:
                         self._roll_back(checkpoint, err)
                         bar.reset(total=total)
@@ -309,7 +310,9 @@ class Trainer:
                     if fitting and self.schedule_fit is None and self._fit_to_budget(budget, out_dir):
                         total = self.config.optim.iterations
                         bar.total = total
-                    if self._logs(self.step, total):
+                    # (decided before the step: a budget fit shortens the run to a later step than this one, so the
+                    # decision stands, and the step computed the PSNR the log shows)
+                    if logs:
                         self.history.append({"step": self.step, **parts})
                         bar.set_postfix(loss=f"{parts['loss']:.4f}", psnr=f"{parts['psnr']:.2f}", n=parts["gaussians"])
                         if writer is not None:
