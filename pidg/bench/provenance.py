@@ -21,13 +21,17 @@ import torch
 VECTOR_ISAS = ("avx512f", "avx2", "avx", "sse4.2", "neon")
 
 
-def git_commit() -> str | None:
-    """The commit of the pidg source tree, with ``+dirty`` when it has uncommitted changes; None outside git."""
-    src = Path(__file__).resolve().parents[2]
+def git_commit(src: Path | None = None) -> str | None:
+    """The commit of the pidg source tree at ``src`` (default: this package's checkout), with ``+dirty`` when it has
+    uncommitted changes; None outside git, and None when the enclosing repository does not track this tree (a copy
+    of the package inside some other checkout would otherwise report that checkout's commit)."""
+    src = Path(__file__).resolve().parents[2] if src is None else src
     try:
+        subprocess.run(["git", "ls-files", "--error-unmatch", "pidg/__init__.py"], cwd=src, capture_output=True,
+                       timeout=10, check=True)
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=src, capture_output=True, text=True, timeout=10, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=src, capture_output=True,
-                               text=True, timeout=10, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "."], cwd=src,
+                               capture_output=True, text=True, timeout=10, check=True)
     except (OSError, subprocess.SubprocessError):
         return None
     return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
