@@ -55,8 +55,8 @@ def vector_isa(features: str) -> str | None:
 
 
 def machine() -> dict[str, Any]:
-    """Where a figure was computed: host, OS, Python, torch, CPUs (model, compile target, vector width, threads)
-    and GPU."""
+    """Where a figure was computed: host, OS, Python, torch, CPUs (model, compile target, vector width, threads),
+    GPU, and OpenMP's wait settings."""
     return {
         "host": platform.node(),
         "platform": platform.platform(),
@@ -69,6 +69,9 @@ def machine() -> dict[str, Any]:
         "torch_threads": torch.get_num_threads(),
         "numba_threads": numba.get_num_threads(),
         "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        # how idle OpenMP threads wait (pidg._env): a kernel launch costs ~4 us or ~100 us by these
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+        "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"),
     }
 
 
@@ -77,4 +80,4 @@ def machine_line(here: dict[str, Any], commit: str | None) -> str:
     the caller, which also stores it): enough to tell whether two logs' absolute times can be compared."""
     return (f"machine: {here['cpu_model']} (kernels compiled for {here['cpu_target']}, {here['vector_isa']}), "
             f"{here['cpus']} CPUs, torch threads {here['torch_threads']}, numba threads {here['numba_threads']}, "
-            f"GPU {here['gpu']}; commit {commit}")
+            f"GPU {here['gpu']}; OpenMP wait {here['omp_wait_policy']}, spin {here['gomp_spincount']}; commit {commit}")

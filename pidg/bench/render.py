@@ -6,7 +6,6 @@ same process, back to back, and are the figures to compare.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -118,7 +117,7 @@ def run_render_bench(config: RenderBenchConfig, out_path: Path | None = None, lo
     log("composite: binning + compositing forward + backward alone, on fixed projections: the part the kernel implements.")
     log("Times are medians of interleaved repetitions; peak MB is the RSS growth of one fwd+bwd in a fresh process.")
     here, commit = machine(), git_commit()
-    log(f"{machine_line(here, commit)}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+    log(machine_line(here, commit))
     header = (f"{'case':<5}{'N':>8}{'px':>6}{'pairs':>12}{'backend':>9}{'fwd ms':>9}{'fwd+bwd ms':>12}"
               f"{'composite ms':>14}{'peak MB':>9}")
     log(header)

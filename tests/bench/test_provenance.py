@@ -1,6 +1,7 @@
 """Every bench records the processor its kernels were compiled for: absolute times compare only on the same one."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -36,6 +37,9 @@ def test_machine_agrees_with_the_kernel_s_view_of_the_cpu():
     assert here["cpu_model"] and here["cpu_target"] and here["cpus"] >= 1 and here["numba_threads"] >= 1
     line = machine_line(here, "abc123+dirty")
     assert here["cpu_model"] in line and here["cpu_target"] in line and expected in line and "abc123+dirty" in line
+    # the wait settings that pidg sets before torch loads (a kernel launch costs ~4 us or ~100 us by them)
+    assert (here["omp_wait_policy"], here["gomp_spincount"]) == (os.environ["OMP_WAIT_POLICY"], os.environ["GOMP_SPINCOUNT"])
+    assert f"OpenMP wait {here['omp_wait_policy']}, spin {here['gomp_spincount']}" in line
 
 
 def _git(cwd: Path, *args: str) -> str:
