@@ -14,7 +14,7 @@ from torch import Tensor
 from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
-from pidg.render.projection import Projection, project_gaussians, tiles_touched
+from pidg.render.projection import TILE_SIZE, Projection, project_gaussians, tiles_touched
 from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.footprint import footprints_touching
 from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu, gaussians_reaching_cpu
@@ -24,7 +24,14 @@ from pidg.render.sh import sh_to_rgb
 
 #: Which compositor renders: "cpu" (numba kernel), "torch" (reference), "gsplat" (CUDA), "auto" (by device).
 RenderBackend = Literal["auto", "cpu", "torch", "gsplat"]
-TILE_SIZE = 16
+
+
+def _opacity_vector(opacities: Tensor) -> Tensor:
+    """Opacities as [N]: the renderers also take the [N, 1] column a model stores (anything else is left for
+    ``_check_inputs`` to name)."""
+    if isinstance(opacities, Tensor) and opacities.dim() == 2 and opacities.shape[-1] == 1:
+        return opacities.squeeze(-1)
+    return opacities
 
 
 def _check_inputs(
@@ -117,8 +124,7 @@ def gaussians_reaching(
     Gaussians are left out: ``gaussians_reaching_cpu``); elsewhere it is the footprint boxes' superset
     (``footprints_touching``). Either way the others add exactly nothing at those pixels."""
     touching = footprints_touching(proj.means2d, proj.radii, pixels)
-    if opacities.dim() == 2 and opacities.shape[-1] == 1:  # as rasterize takes them
-        opacities = opacities.squeeze(-1)
+    opacities = _opacity_vector(opacities)
     if resolve_backend(backend, proj.means2d.device) != "cpu" or proj.means2d.dtype != torch.float32:
         return touching
     # only Gaussians whose box holds a pixel can add to it: the others are culled (radius 0) before the binning
@@ -158,8 +164,7 @@ def rasterize(
     """
     if (scales is None) == (log_scales is None):
         raise ValueError("rasterize: pass exactly one of scales= or log_scales=")
-    if isinstance(opacities, Tensor) and opacities.dim() == 2 and opacities.shape[-1] == 1:
-        opacities = opacities.squeeze(-1)
+    opacities = _opacity_vector(opacities)
     lin_scales = scales if scales is not None else torch.exp(log_scales)  # type: ignore[arg-type]
     _check_inputs(means, quats, lin_scales, opacities, colors, features, background, sh_degree, camera)
     which = resolve_backend(backend, means.device)

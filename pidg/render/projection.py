@@ -17,6 +17,7 @@ from pidg.render.camera import Camera
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped (3DGS convention)
 ALPHA_MAX = 0.99  # per-Gaussian alpha is clamped to this so transmittance never reaches zero
 TRANSMITTANCE_MIN = 1e-4  # a pixel stops compositing once its transmittance would fall below this
+TILE_SIZE = 16  # pixels along a side of the compositors' square tiles (the CPU kernel takes up to its 16 lanes)
 EPS2D = 0.3  # low-pass dilation (pixels^2) added to every 2D covariance
 FRUSTUM_MARGIN = 1.3  # J is evaluated with x/z, y/z clamped to 1.3x the half field of view (3DGS, gsplat)
 

@@ -39,7 +39,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from pidg.kernel_math import exp_nonpositive_unclamped, float32_array
-from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, tile_grid, tiles_touched
+from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN, tile_grid, tiles_touched
 
 _N_PARAMS = 6  # gradient slots per Gaussian before its features: mean x, mean y, conic a, b, c, opacity
 LANES = 16  # pixels of a tile row processed together; the tile size may not exceed it
@@ -162,7 +162,7 @@ def depth_order(depths: np.ndarray, indices: np.ndarray) -> np.ndarray:
     return (np.sort(keys) & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
 
-def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16) -> TileBins:
+def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = TILE_SIZE) -> TileBins:
     """Assign visible Gaussians to the tiles their bounding boxes touch, depth-sorted within each tile."""
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
     m2 = np.ascontiguousarray(means2d.detach().cpu().numpy())
@@ -695,7 +695,7 @@ def composite_cpu(
     radii: Tensor,
     width: int,
     height: int,
-    tile_size: int = 16,
+    tile_size: int = TILE_SIZE,
     tile_channels: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Same contract as ``composite_reference``: image [H, W, D] and alpha [H, W], differentiable; a tile composites
@@ -715,7 +715,7 @@ def composite_cpu(
 
 @torch.no_grad()
 def gaussians_reaching_cpu(
-    means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor, pixels: Tensor, tile_size: int = 16,
+    means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor, pixels: Tensor, tile_size: int = TILE_SIZE,
 ) -> Tensor:
     """[N] bool: the Gaussians that add to a pixel of ``pixels`` [H, W] (bool) in ``composite_cpu``'s render of
     these screen-space Gaussians (a non-zero weight alpha T there), by its own float32 arithmetic, so the set is

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, tile_grid
+from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN, tile_grid
 
 
 def composite_reference(
@@ -23,7 +23,7 @@ def composite_reference(
     radii: Tensor,
     width: int,
     height: int,
-    tile_size: int = 16,
+    tile_size: int = TILE_SIZE,
     tile_channels: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Alpha-composite per-Gaussian features [N, D] into an image [H, W, D]; also returns alpha [H, W].
@@ -82,7 +82,7 @@ def composite_reference(
     return torch.cat(rows_out, dim=0), torch.cat(alpha_rows, dim=0)
 
 
-def channels_below(tile_channels: Tensor, n_channels: int, width: int, height: int, tile_size: int = 16) -> Tensor:
+def channels_below(tile_channels: Tensor, n_channels: int, width: int, height: int, tile_size: int = TILE_SIZE) -> Tensor:
     """[H, W, n_channels] bool: True for the channels a pixel's tile composites (``tile_channels`` [tiles_y *
     tiles_x], row-major)."""
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
