@@ -53,7 +53,9 @@ from pidg.models.deformation.base import (
 )
 from pidg.models.deformation.hash_grid import HashGridBackend
 from pidg.models.jet import FieldJet
+from pidg.models.parallel_linear import Linear, linear
 from pidg.models.planes import lookup_planes
+from pidg.models.tanh_tangents import tanh_with_tangents
 
 GROUP_EMBEDDING = "embedding"  # the index embedding table: its own learning rate
 
@@ -98,8 +100,9 @@ class MaterialFieldConfig:
     stress: bool = True
     """False: the paper's "no stress" ablation, sigma == 0."""
     backend: HashGridBackend = "auto"
-    """Implementation of the plane lookups (:mod:`pidg.models.planes`): the numba kernel on float32 CPU tensors, the
-    torch reference otherwise (CUDA); cpu or torch force one."""
+    """Implementation of the plane lookups (:mod:`pidg.models.planes`) and of the jet's tanh tangents
+    (:mod:`pidg.models.tanh_tangents`): the numba kernels on float32 CPU tensors, the torch references otherwise
+    (CUDA); cpu or torch force one."""
 
     def __post_init__(self) -> None:
         validate_config(self)
@@ -171,9 +174,9 @@ class MaterialField(nn.Module):
         self.activation, self.activation_value = ACTIVATIONS[cfg.activation], ACTIVATION_VALUES[cfg.activation]
         self.tangent_dim = 6 * c + 2 * cfg.time_frequencies  # feature columns that depend on (x, t)
         dims = [self.tangent_dim + cfg.embedding_dim] + [cfg.width] * cfg.depth
-        self.trunk = nn.ModuleList(nn.Linear(d_in, d_out) for d_in, d_out in itertools.pairwise(dims))
-        self.head_velocity = nn.Linear(cfg.width, 3)
-        self.head_stress = nn.Linear(cfg.width, 6)
+        self.trunk = nn.ModuleList(Linear(d_in, d_out) for d_in, d_out in itertools.pairwise(dims))
+        self.head_velocity = Linear(cfg.width, 3)
+        self.head_stress = Linear(cfg.width, 6)
         with torch.no_grad():
             self.head_velocity.weight.mul_(cfg.velocity_init_scale)
             self.head_velocity.bias.zero_()
@@ -188,7 +191,7 @@ class MaterialField(nn.Module):
         hidden = self._features(x, times, index)
         for layer in self.trunk:
             hidden = self.activation_value(layer(hidden))
-        out = F.linear(hidden, *self._heads())
+        out = linear(hidden, *self._heads())
         sigma = out[:, 3:] if self.config.stress else hidden.new_zeros(hidden.shape[0], 6)
         return out[:, :3], sigma
 
@@ -202,14 +205,17 @@ class MaterialField(nn.Module):
         for depth, layer in enumerate(self.trunk):
             z = layer(hidden)
             weight = layer.weight[:, : self.tangent_dim] if depth == 0 else layer.weight  # embedding: no tangent
-            dz = tangent @ weight.T  # [4, M, width]
-            hidden, slope = self.activation(z)
-            tangent = slope * dz
+            dz = linear(tangent, weight)  # [4, M, width]
+            if self.config.activation == "tanh":
+                hidden, tangent = tanh_with_tangents(z, dz, kernel=False if self.config.backend == "torch" else None)
+            else:
+                hidden, slope = self.activation(z)
+                tangent = slope * dz
         # both heads in one matmul: slicing the [4, M, width] tangent for the stress head instead costs, in
         # backward, a zero-filled gradient of that size and a sum of two (profiled: ~2 ms fill per step at M = 1024)
         weight, bias = self._heads()
-        out = F.linear(hidden, weight, bias)
-        d_out = tangent @ weight.T  # [4, M, 3 or 9]
+        out = linear(hidden, weight, bias)
+        d_out = linear(tangent, weight)  # [4, M, 3 or 9]
         v, dv = out[:, :3], d_out[..., :3]
         if self.config.stress:
             sigma, dsigma = out[:, 3:], d_out[:3, :, 3:]  # d sigma / dt is computed but the residual needs none

@@ -42,6 +42,7 @@ from pidg.errors import NonFiniteError, TrainingFailed
 from pidg.flow import FlowCache, open_flow_cache
 from pidg.metrics import psnr
 from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.models.parallel_linear import matmul_threads
 from pidg.training.config import TrainConfig, describe_schedule
 from pidg.training.decoupling import StaticDynamicDecoupling
 from pidg.training.densification import DensificationStrategy
@@ -291,8 +292,9 @@ class Trainer:
         fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy == "fit"
         stopped_by = None
         torch_threads = torch.get_num_threads()
+        products_threads = (cfg.cpu_matmul_threads or torch_threads) if self.device.type == "cpu" and cfg.cpu_torch_threads else None
         try:
-            with _GracefulInterrupt() as interrupt:
+            with _GracefulInterrupt() as interrupt, matmul_threads(products_threads):
                 while self.step < total:
                     t0 = self.clock()
                     if self.device.type == "cpu" and cfg.cpu_torch_threads:

@@ -148,6 +148,27 @@ def test_jet_is_differentiable_with_respect_to_parameters_and_positions(tiny_fie
         assert grad.abs().sum() > 0, name
 
 
+def test_float32_jet_on_the_kernels_matches_the_torch_backend(tiny_field, random_inputs):
+    """The CPU kernels (plane lookups, tanh tangents) against the torch references: the jet and the gradients of a
+    loss on all of it with respect to the positions and every parameter."""
+    results = []
+    for backend in ("torch", "auto"):
+        field = tiny_field(backend=backend).float()
+        x, t, index = random_inputs(64)
+        x = x.float().requires_grad_(True)
+        jet = field.jet(x, t.float(), index)
+        gen = torch.Generator().manual_seed(3)
+        loss = sum((getattr(jet, name) * torch.randn(getattr(jet, name).shape, generator=gen)).sum() for name in JET_FIELDS)
+        loss.backward()
+        grads = {name: (p.grad.to_dense() if p.grad.is_sparse else p.grad) for name, p in field.named_parameters()}
+        results.append((jet, x.grad, grads))
+    (jet_ref, x_ref, grads_ref), (jet_k, x_k, grads_k) = results
+    _assert_jets_close(jet_k, jet_ref, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(x_k, x_ref, atol=1e-5, rtol=1e-4)
+    for name, g in grads_ref.items():
+        torch.testing.assert_close(grads_k[name], g, atol=1e-5, rtol=1e-4, msg=lambda m, n=name: f"{n}: {m}")
+
+
 # ---- densification, optimisers ------------------------------------------------------------------------------------
 def test_embedding_is_keyed_by_inherited_particle_index():
     """Children carry their parent's particle_index, so the table (num_particles rows) never resizes and a

@@ -40,7 +40,6 @@ from dataclasses import dataclass, field
 from typing import Annotated
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, UNIT, Range, validate_config
@@ -61,6 +60,7 @@ from pidg.models.deformation.hash_grid import (
 )
 from pidg.models.deformation.gate import attention, gate
 from pidg.models.deformation.warp import apply_warp, split_heads
+from pidg.models.parallel_linear import Linear, linear
 
 
 @dataclass
@@ -127,15 +127,15 @@ class Grid4D(DeformationModel):
         self.grid_yzt = HashGrid(cfg.temporal_grid, cfg.backend)
         self.grid_xzt = HashGrid(cfg.temporal_grid, cfg.backend)
         f_s_activation = [nn.ReLU()] if cfg.spatial_relu else []
-        self.spatial_mlp = nn.Sequential(nn.Linear(self.grid_xyz.out_dim, cfg.width), *f_s_activation)
-        self.temporal_mlp = nn.Sequential(nn.Linear(3 * self.grid_xyt.out_dim, cfg.width), nn.ReLU())
+        self.spatial_mlp = nn.Sequential(Linear(self.grid_xyz.out_dim, cfg.width), *f_s_activation)
+        self.temporal_mlp = nn.Sequential(Linear(3 * self.grid_xyt.out_dim, cfg.width), nn.ReLU())
         hidden: list[nn.Module] = []
         for _ in range(cfg.decoder_depth):
-            hidden += [nn.Linear(cfg.width, cfg.width), nn.ReLU()]
+            hidden += [Linear(cfg.width, cfg.width), nn.ReLU()]
         self.decoder = nn.Sequential(*hidden)
-        self.head_warp = nn.Linear(cfg.width, 7)  # rigid warp: quaternion increment (4), translation (3)
-        self.head_rotation = nn.Linear(cfg.width, 4)  # dr
-        self.head_scale = nn.Linear(cfg.width, 3)  # ds (log space)
+        self.head_warp = Linear(cfg.width, 7)  # rigid warp: quaternion increment (4), translation (3)
+        self.head_rotation = Linear(cfg.width, 4)  # dr
+        self.head_scale = Linear(cfg.width, 3)  # ds (log space)
         for head in (self.head_warp, self.head_rotation, self.head_scale):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
@@ -219,7 +219,7 @@ class Grid4D(DeformationModel):
         """The warp (w, T), dr and ds heads' outputs [N, 14] (``warp.WARP_COLUMNS``) as one matrix product (a third
         of the launches and of the backward's passes over h)."""
         heads = (self.head_warp, self.head_rotation, self.head_scale)
-        out = F.linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
+        out = linear(h, torch.cat([m.weight for m in heads]), torch.cat([m.bias for m in heads]))
         bound_t, bound_s = self.config.max_translation, self.config.max_log_scale_change
         if not (bound_t or bound_s):
             return out

@@ -27,6 +27,7 @@ from pidg.models.deformation.base import (
     quat_multiply,
     unit_quat_from_delta,
 )
+from pidg.models.parallel_linear import Linear
 
 
 @dataclass
@@ -69,13 +70,13 @@ class MLPDeformation(DeformationModel):
         self.config = cfg = config or MLPDeformationConfig()
         self.normalize = NormalizedPositions(bounds)
         in_dim = 3 * (1 + 2 * cfg.position_frequencies) + (1 + 2 * cfg.time_frequencies)
-        layers = [nn.Linear(in_dim, cfg.width)]
+        layers = [Linear(in_dim, cfg.width)]
         for i in range(cfg.depth - 1):  # layer i + 1 also sees the input when layer i is a skip
-            layers.append(nn.Linear(cfg.width + (in_dim if i in cfg.skips else 0), cfg.width))
+            layers.append(Linear(cfg.width + (in_dim if i in cfg.skips else 0), cfg.width))
         self.layers = nn.ModuleList(layers)
-        self.head_translation = nn.Linear(cfg.width, 3)
-        self.head_rotation = nn.Linear(cfg.width, 4)
-        self.head_scale = nn.Linear(cfg.width, 3)
+        self.head_translation = Linear(cfg.width, 3)
+        self.head_rotation = Linear(cfg.width, 4)
+        self.head_scale = Linear(cfg.width, 3)
         for head in (self.head_translation, self.head_rotation, self.head_scale):
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
