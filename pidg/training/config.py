@@ -175,8 +175,8 @@ class TrainConfig:
     matrix products ran x1.3-1.5 slower (which ``cpu_matmul_threads`` gives back). Restored when training returns."""
     cpu_matmul_threads: Annotated[int, NON_NEGATIVE] = 0
     """Threads for the networks' matrix products (forward and backward) while a CPU run trains with
-    ``cpu_torch_threads`` (0: torch's default, one per core): products parallelise where small operations do not
-    (:mod:`pidg.models.parallel_linear`)."""
+    ``cpu_torch_threads`` (0: torch's count when training starts, by default one per core): products parallelise
+    where small operations do not (:mod:`pidg.models.parallel_linear`)."""
     preset: Preset = field(default="none", metadata={"command_line_default": "auto"})
     """Defaults the other values start from, applied before every other option: cpu (model sizes for a CPU step),
     paper (the published schedule and sizes for the dataset's kind), auto (paper on CUDA, else cpu), none (the

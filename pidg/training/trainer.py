@@ -292,7 +292,8 @@ class Trainer:
         fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy == "fit"
         stopped_by = None
         torch_threads = torch.get_num_threads()
-        products_threads = (cfg.cpu_matmul_threads or torch_threads) if self.device.type == "cpu" and cfg.cpu_torch_threads else None
+        on_cpu_threads = self.device.type == "cpu" and cfg.cpu_torch_threads
+        products_threads = (cfg.cpu_matmul_threads or torch_threads) if on_cpu_threads else None
         try:
             with _GracefulInterrupt() as interrupt, matmul_threads(products_threads):
                 while self.step < total:
