@@ -65,7 +65,8 @@ SPATIAL_AXES = ((0, 0, 1), (1, 2, 2))
 TEMPORAL_AXES = ((0, 1, 2), (3, 3, 3))
 NUM_DIRECTIONS = 4  # tangent directions d/dx, d/dy, d/dz, d/dt
 
-ActivationFn = Callable[[Tensor], tuple[Tensor, Tensor]]
+#: (z [M, W], dz [4, M, W], kernel) -> (phi(z), phi'(z) dz): a trunk layer's activations and their tangents
+ActivationWithTangents = Callable[[Tensor, Tensor, bool | None], tuple[Tensor, Tensor]]
 Activation = Literal["tanh", "silu", "softplus"]
 
 
@@ -109,11 +110,16 @@ class MaterialFieldConfig:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# smooth activations with their derivative
+# smooth activations with their tangents
 # ---------------------------------------------------------------------------------------------------------------
-def _tanh(z: Tensor) -> tuple[Tensor, Tensor]:
-    a = torch.tanh(z)
-    return a, 1.0 - a * a
+def _by_slope(value_and_slope: Callable[[Tensor], tuple[Tensor, Tensor]]) -> ActivationWithTangents:
+    """An activation given as (phi(z), phi'(z)) in torch, as (phi(z), phi'(z) dz) (no kernel: ``kernel`` is ignored)."""
+
+    def with_tangents(z: Tensor, dz: Tensor, kernel: bool | None = None) -> tuple[Tensor, Tensor]:
+        a, slope = value_and_slope(z)
+        return a, slope * dz
+
+    return with_tangents
 
 
 def _silu(z: Tensor) -> tuple[Tensor, Tensor]:
@@ -125,11 +131,14 @@ def _softplus(z: Tensor) -> tuple[Tensor, Tensor]:
     return F.softplus(z), torch.sigmoid(z)
 
 
-#: (phi(z), phi'(z)). Smooth on purpose: the CMR backward differentiates through the tangents phi'(z) * dz, so it
-#: needs phi''. With ReLU phi'' = 0, grad v would be piecewise constant in x (jumping across activation
+#: (phi(z), phi'(z) dz); tanh's is a numba kernel with its torch reference (:mod:`pidg.models.tanh_tangents`).
+#: Smooth on purpose: the CMR backward differentiates through the tangents phi'(z) * dz, so it needs phi''. With
+#: ReLU phi'' = 0, grad v would be piecewise constant in x (jumping across activation
 #: boundaries) and the loss gradient with respect to the positions would lose every curvature term. tanh is the
 #: default because it is the cheapest: one transcendental per element and phi' = 1 - phi^2 from the output.
-ACTIVATIONS: dict[Activation, ActivationFn] = {"tanh": _tanh, "silu": _silu, "softplus": _softplus}
+ACTIVATIONS: dict[Activation, ActivationWithTangents] = {
+    "tanh": tanh_with_tangents, "silu": _by_slope(_silu), "softplus": _by_slope(_softplus),
+}
 #: the same functions without the derivative, for ``forward``
 ACTIVATION_VALUES: dict[Activation, Callable[[Tensor], Tensor]] = {"tanh": torch.tanh, "silu": F.silu, "softplus": F.softplus}
 
@@ -206,11 +215,7 @@ class MaterialField(nn.Module):
             z = layer(hidden)
             weight = layer.weight[:, : self.tangent_dim] if depth == 0 else layer.weight  # embedding: no tangent
             dz = linear(tangent, weight)  # [4, M, width]
-            if self.config.activation == "tanh":
-                hidden, tangent = tanh_with_tangents(z, dz, kernel=False if self.config.backend == "torch" else None)
-            else:
-                hidden, slope = self.activation(z)
-                tangent = slope * dz
+            hidden, tangent = self.activation(z, dz, False if self.config.backend == "torch" else None)
         # both heads in one matmul: slicing the [4, M, width] tangent for the stress head instead costs, in
         # backward, a zero-filled gradient of that size and a sum of two (profiled: ~2 ms fill per step at M = 1024)
         weight, bias = self._heads()
