@@ -76,3 +76,23 @@ def tiny_config() -> Callable[..., PhysicsConfig]:
 @pytest.fixture
 def random_inputs() -> Callable[..., tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
     return _random_inputs
+
+
+# ---- a numba kernel against its torch reference ------------------------------------------------------------------
+def _kernel_and_reference(fn: Callable[..., tuple[torch.Tensor, ...]], inputs: tuple[torch.Tensor, ...],
+                          output_grads: tuple[torch.Tensor, ...], read: tuple[int, ...]) -> list[tuple]:
+    """``fn(*inputs, kernel=False)`` then ``kernel=True``, each on fresh leaf copies of ``inputs``, with autograd run
+    from the outputs numbered in ``read`` only (the others get no gradient, as when a loss does not read them);
+    -> per run (reference first): the outputs, detached, then the inputs' gradients (None where none arrived)."""
+    results = []
+    for kernel in (False, True):
+        leaves = [t.clone().requires_grad_(True) for t in inputs]
+        outputs = fn(*leaves, kernel=kernel)
+        torch.autograd.backward([outputs[i] for i in read], [output_grads[i] for i in read])
+        results.append((*(o.detach() for o in outputs), *(t.grad for t in leaves)))
+    return results
+
+
+@pytest.fixture
+def kernel_and_reference() -> Callable[..., list[tuple]]:
+    return _kernel_and_reference

@@ -16,18 +16,12 @@ def _inputs(rows: int = 257, width: int = 64):
 
 
 @pytest.mark.parametrize("reads", ["both", "gated only", "attention only"])
-def test_gate_kernel_matches_the_reference(reads):
+def test_gate_kernel_matches_the_reference(reads, kernel_and_reference):
     """Values and the gradients of both inputs, whichever outputs the loss reads (autograd sends None for the
     other); the kernel's a = tanh(z / 2) form is within float32 rounding of 2 sigmoid(z) - 1."""
     z_spatial, z_temporal, grad_a, grad_h = _inputs()
-    results = []
-    for kernel in (False, True):
-        zs, zt = z_spatial.clone().requires_grad_(True), z_temporal.clone().requires_grad_(True)
-        a, h = gate(zs, zt, kernel=kernel)
-        outputs, grads = {"both": ([a, h], [grad_a, grad_h]), "gated only": ([h], [grad_h]),
-                          "attention only": ([a], [grad_a])}[reads]
-        torch.autograd.backward(outputs, grads)
-        results.append((a.detach(), h.detach(), zs.grad, zt.grad))
+    read = {"both": (0, 1), "gated only": (1,), "attention only": (0,)}[reads]
+    results = kernel_and_reference(gate, (z_spatial, z_temporal), (grad_a, grad_h), read)
     for name, ref, got in zip(["a", "h", "d z_spatial", "d z_temporal"], *results):
         if got is None or ref is None:
             assert got is None and ref is None and name == "d z_temporal" and reads == "attention only", name
@@ -37,14 +31,9 @@ def test_gate_kernel_matches_the_reference(reads):
     assert a.abs().max() <= 1.0 and a[0, 6] == 1.0 and a[0, 7] == -1.0  # saturates without overflow
 
 
-def test_attention_kernel_matches_the_reference():
+def test_attention_kernel_matches_the_reference(kernel_and_reference):
     z_spatial, _, grad_a, _ = _inputs()
-    results = []
-    for kernel in (False, True):
-        z = z_spatial.clone().requires_grad_(True)
-        a = attention(z, kernel=kernel)
-        a.backward(grad_a)
-        results.append((a.detach(), z.grad))
+    results = kernel_and_reference(lambda z, kernel: (attention(z, kernel=kernel),), (z_spatial,), (grad_a,), (0,))
     for name, ref, got in zip(["a", "d z"], *results):
         torch.testing.assert_close(got, ref, rtol=0, atol=2e-6, msg=name)
     assert torch.equal(attention_reference(z_spatial), 2.0 * torch.sigmoid(z_spatial) - 1.0)

@@ -45,16 +45,10 @@ def test_reference_gradient_matches_central_differences_of_a_loss_on_both_output
 
 
 @pytest.mark.parametrize("reads", ["both", "tangents only", "values only"])
-def test_kernel_matches_the_reference(reads):
+def test_kernel_matches_the_reference(reads, kernel_and_reference):
     z, dz, grad_a, grad_tangent = _inputs()
-    results = []
-    for kernel in (False, True):
-        zv, dzv = z.clone().requires_grad_(True), dz.clone().requires_grad_(True)
-        a, tangent = tanh_with_tangents(zv, dzv, kernel=kernel)
-        outputs, grads = {"both": ([a, tangent], [grad_a, grad_tangent]), "tangents only": ([tangent], [grad_tangent]),
-                          "values only": ([a], [grad_a])}[reads]
-        torch.autograd.backward(outputs, grads)
-        results.append((a.detach(), tangent.detach(), zv.grad, dzv.grad))
+    read = {"both": (0, 1), "tangents only": (1,), "values only": (0,)}[reads]
+    results = kernel_and_reference(tanh_with_tangents, (z, dz), (grad_a, grad_tangent), read)
     for name, ref, got in zip(["a", "tangent", "d z", "d dz"], *results):
         if ref is None or got is None:
             assert ref is None and got is None and name == "d dz" and reads == "values only", name
