@@ -95,7 +95,7 @@ def _composite_fn(scene: GaussianScene, size: int, backend: str) -> Callable[[],
     weights = torch.rand(size, size, feats.shape[1], generator=torch.Generator().manual_seed(1))
 
     def forward_backward() -> None:
-        image, alpha = composite(*leaves, proj.depths, proj.radii, size, size)
+        image, alpha, _ = composite(*leaves, proj.depths, proj.radii, size, size)
         ((image * weights).sum() + alpha.sum()).backward()
         for t in leaves:
             t.grad = None

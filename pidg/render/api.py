@@ -199,15 +199,16 @@ def rasterize(
     if feature_pixels is not None and n_feat:
         tile_channels = feature_tile_channels(feature_pixels, 4, n_feat, tile_size)  # colour and depth everywhere
     composite = composite_cpu if which == "cpu" else composite_reference
-    image, alpha = composite(
+    # colour and depth into the image, the features into an image of their own (``extra``)
+    image, alpha, extra = composite(
         proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size,
-        tile_channels,
+        tile_channels, image_channels=4,
     )
     if which == "cpu" and image.dtype == torch.float32 and not bg.requires_grad:
-        rgb, depth, extra = finish_image_cpu(image, alpha, bg)  # the lines below as one numba pass
+        rgb, depth = finish_image_cpu(image, alpha, bg)  # the lines below as one numba pass
     else:
         # split, not sliced: each slice's backward fills a zero gradient of the whole image (measured 9 ms of a step)
-        colour, depth, extra = image.split([3, 1, n_feat], dim=-1)
+        colour, depth = image.split([3, 1], dim=-1)
         rgb = colour + (1.0 - alpha).unsqueeze(-1) * bg
         depth = depth.squeeze(-1)
     return RenderOutput(

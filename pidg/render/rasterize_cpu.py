@@ -20,8 +20,11 @@ Pipeline, with no Python loop over Gaussians:
      per (tile, Gaussian) intersection, stored at that intersection's slot in Gaussian-major order, so that
      ``_reduce_per_gaussian`` sums contiguous rows per Gaussian: no atomics, and the result is deterministic
      whatever the thread schedule.
-  4. ``finish_image_cpu``: the composited channels become rgb over the background, depth and the feature channels,
-     each a contiguous array, in one pass; its backward assembles the image's gradient in one pass too.
+     The leading channels (colour and depth) go to the image and the rest (a loss's features) to an array of their
+     own, so that a few feature tiles do not widen every pixel's row of the image: strided into one
+     [H, W, 4 + 8] array, the image's and its gradient's cache lines tripled (~5 ms of a 400x400 step).
+  4. ``finish_image_cpu``: the composited colour and depth become rgb over the background and depth, each a
+     contiguous array, in one pass; its backward assembles the image's gradient in one pass too.
   5. ``gaussians_reaching_cpu`` (not part of a render): the forward pass's hit and stop rules on a pixel mask only,
      marking the Gaussians that add to it, so a loss on a few pixels can skip the others' per-Gaussian work.
 Arithmetic is float32 like gsplat (inputs are converted; outputs come back in the input dtype), with the
@@ -39,7 +42,15 @@ from numba import njit, prange
 from torch import Tensor
 
 from pidg.kernel_math import exp_nonpositive_unclamped, float32_array
-from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN, tile_grid, tiles_touched
+from pidg.render.projection import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    TILE_SIZE,
+    TRANSMITTANCE_MIN,
+    image_channel_count,
+    tile_grid,
+    tiles_touched,
+)
 
 _N_PARAMS = 6  # gradient slots per Gaussian before its features: mean x, mean y, conic a, b, c, opacity
 LANES = 16  # pixels of a tile row processed together; the tile size may not exceed it
@@ -307,11 +318,12 @@ def _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight):  # pragma: no c
 @njit(parallel=True, cache=True, nogil=True)
 def _forward_tiles(
     means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x, out_img,
-    out_trans, out_end
+    out_extra, out_trans, out_end
 ):  # pragma: no cover - compiled
     n_tiles = tile_offsets.shape[0] - 1
+    n_image = out_img.shape[2]  # channels 0 .. n_image - 1 go to out_img, the rest to out_extra
     for tile in prange(n_tiles):
-        dim = tile_dims[tile]  # channels composited in this tile; the others are written as 0
+        dim = tile_dims[tile]  # channels composited in this tile (at least n_image); out_extra holds 0 in the others
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
         n_k = end - start
@@ -361,10 +373,10 @@ def _forward_tiles(
                     break
             for lane in range(n_lanes):
                 px = x_lo + lane
-                for d in range(dim):
+                for d in range(n_image):
                     out_img[py, px, d] = acc[d, lane]
-                for d in range(dim, out_img.shape[2]):
-                    out_img[py, px, d] = 0.0
+                for d in range(n_image, dim):
+                    out_extra[py, px, d - n_image] = acc[d, lane]
                 out_trans[py, px] = trans[lane]
                 out_end[py, px] = np.int32(stop[lane])
 
@@ -439,7 +451,7 @@ def _any_per_gaussian(reached, gauss_offsets, out):  # pragma: no cover - compil
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
     means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x,
-    out_trans, out_end, grad_img, grad_alpha, slot_of_isect, isect_grads,
+    out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads,
 ):  # pragma: no cover - compiled
     """Per (tile, Gaussian) gradients, back to front.
 
@@ -451,6 +463,7 @@ def _backward_tiles(
     """
     n_slots = isect_grads.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
+    n_image = grad_img.shape[2]  # channels from n_image on: their gradient is grad_extra's
     for tile in prange(n_tiles):
         dim = tile_dims[tile]  # the forward's channels: the others are constant 0 here, with no gradient
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
@@ -495,8 +508,10 @@ def _backward_tiles(
                 stop[lane] = f32(out_end[py, px])
                 trans_final[lane] = out_trans[py, px]
                 g_alpha_out[lane] = grad_alpha[py, px]
-                for d in range(dim):
+                for d in range(n_image):
                     g_out[d, lane] = grad_img[py, px, d]
+                for d in range(n_image, dim):
+                    g_out[d, lane] = grad_extra[py, px, d - n_image]
                 k_end = max(k_end, out_end[py, px])
             for lane in range(n_lanes, LANES):
                 stop[lane] = 0.0
@@ -579,58 +594,65 @@ def _reduce_per_gaussian(isect_grads, gauss_offsets, out):  # pragma: no cover -
 
 class _CompositeCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int, tile_dims: np.ndarray):  # type: ignore[override]
+    def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int, tile_dims: np.ndarray, image_channels: int):  # type: ignore[override]
         if bins.tile_size > LANES:
             raise ValueError(f"the CPU kernel supports tiles up to {LANES} pixels wide, got {bins.tile_size}")
+        ctx.set_materialize_grads(False)  # an output the loss does not read sends None, not a tensor of zeros
         dim = features.shape[1]
-        img = np.empty((height, width, dim), dtype=np.float32)
+        img = np.empty((height, width, image_channels), dtype=np.float32)
+        # the extra channels are written where a tile composites them; fresh zeroed pages elsewhere
+        everywhere = bool((tile_dims >= dim).all())
+        extra = (np.empty if everywhere else np.zeros)((height, width, dim - image_channels), dtype=np.float32)
         trans = np.empty((height, width), dtype=np.float32)
         end = np.empty((height, width), dtype=np.int32)
         args = (float32_array(means2d), float32_array(conics), float32_array(opacities), float32_array(features), bins.tile_offsets, bins.isect_ids, tile_dims)
         with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
-            _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, trans, end)
+            _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, extra, trans, end)
         ctx.save_for_backward(means2d, conics, opacities, features)
-        ctx.bins, ctx.trans, ctx.end, ctx.size, ctx.tile_dims = bins, trans, end, (width, height), tile_dims
+        ctx.bins, ctx.trans, ctx.end, ctx.size, ctx.tile_dims = bins, trans, end, (width, height, image_channels), tile_dims
         dtype = features.dtype
-        return torch.from_numpy(img).to(dtype), torch.from_numpy(1.0 - trans).to(dtype)
+        return torch.from_numpy(img).to(dtype), torch.from_numpy(1.0 - trans).to(dtype), torch.from_numpy(extra).to(dtype)
 
     @staticmethod
-    def backward(ctx, grad_img: Tensor, grad_alpha: Tensor):  # type: ignore[override]
+    def backward(ctx, grad_img: Tensor | None, grad_alpha: Tensor | None, grad_extra: Tensor | None):  # type: ignore[override]
         means2d, conics, opacities, features = ctx.saved_tensors
         bins: TileBins = ctx.bins
-        width, height = ctx.size
+        width, height, image_channels = ctx.size
         n, dim = features.shape
+        tile_dims = ctx.tile_dims
+        if grad_extra is None:  # the extra channels add nothing to the loss: their tiles' backward skips them
+            tile_dims, grad_extra = np.minimum(tile_dims, image_channels), torch.zeros(0, 0, 0)
+        img_grad = np.zeros((height, width, image_channels), np.float32) if grad_img is None else float32_array(grad_img)
+        alpha_grad = np.zeros((height, width), np.float32) if grad_alpha is None else float32_array(grad_alpha)
         isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + dim), dtype=np.float32)  # rows no pixel reached: 0
         with numba.parallel_chunksize(1):
             _backward_tiles(
                 float32_array(means2d), float32_array(conics), float32_array(opacities), float32_array(features), bins.tile_offsets, bins.isect_ids,
-                ctx.tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, float32_array(grad_img),
-                float32_array(grad_alpha), bins.slot_of_isect, isect_grads,
+                tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad, float32_array(grad_extra),
+                alpha_grad, bins.slot_of_isect, isect_grads,
             )
         per_gauss = np.empty((n, _N_PARAMS + dim), dtype=np.float64)
         _reduce_per_gaussian(isect_grads, bins.gauss_offsets, per_gauss)
         g = torch.from_numpy(per_gauss).to(features.dtype)
-        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, _N_PARAMS:], None, None, None, None
+        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, _N_PARAMS:], None, None, None, None, None
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _finish_forward(image, alpha, background, rgb, depth, extra):  # pragma: no cover - compiled
-    height, width, dim = image.shape
+def _finish_forward(image, alpha, background, rgb, depth):  # pragma: no cover - compiled
+    height, width = alpha.shape
     for y in prange(height):
         for x in range(width):
             transmittance = f32(1.0) - alpha[y, x]
             for c in range(3):
                 rgb[y, x, c] = image[y, x, c] + transmittance * background[c]
             depth[y, x] = image[y, x, 3]
-            for c in range(dim - 4):
-                extra[y, x, c] = image[y, x, 4 + c]
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _finish_backward(grad_rgb, grad_depth, grad_extra, background, grad_image, grad_alpha):  # pragma: no cover - compiled
-    """Empty ``grad_depth`` / ``grad_extra`` (no element) stand for gradients autograd did not send: zeros."""
-    height, width, dim = grad_image.shape
-    has_depth, has_extra = grad_depth.size > 0, grad_extra.size > 0
+def _finish_backward(grad_rgb, grad_depth, background, grad_image, grad_alpha):  # pragma: no cover - compiled
+    """An empty ``grad_depth`` (no element) stands for a gradient autograd did not send: zeros."""
+    height, width = grad_alpha.shape
+    has_depth = grad_depth.size > 0
     for y in prange(height):
         for x in range(width):
             through_background = f32(0.0)
@@ -640,47 +662,42 @@ def _finish_backward(grad_rgb, grad_depth, grad_extra, background, grad_image, g
                 through_background += g * background[c]
             grad_alpha[y, x] = -through_background
             grad_image[y, x, 3] = grad_depth[y, x] if has_depth else f32(0.0)
-            for c in range(dim - 4):
-                grad_image[y, x, 4 + c] = grad_extra[y, x, c] if has_extra else f32(0.0)
 
 
 class _FinishImageCPU(torch.autograd.Function):
-    """The composited channels [H, W, 3 + 1 + C] and alpha -> rgb over the background, depth and the extra channels,
-    each its own contiguous array, in one pass (and one pass back). In torch this was a split into views, a
-    broadcast product and a sum, and their backward (a cat along the last dimension, a broadcast sum over the
-    colour channels): ~5 ms of a training step at 400x400, where this takes ~1."""
+    """The composited colour and depth [H, W, 3 + 1] and alpha -> rgb over the background and depth, each its own
+    contiguous array, in one pass (and one pass back). In torch this was a split into views, a broadcast product
+    and a sum, and their backward (a cat along the last dimension, a broadcast sum over the colour channels): ~5 ms
+    of a training step at 400x400, where this takes ~1."""
 
     @staticmethod
     def forward(ctx, image: Tensor, alpha: Tensor, background: Tensor):  # type: ignore[override]
         ctx.set_materialize_grads(False)  # an output the loss does not read sends None, not a tensor of zeros
-        height, width, dim = image.shape
+        height, width, _ = image.shape
         rgb = np.empty((height, width, 3), dtype=np.float32)
         depth = np.empty((height, width), dtype=np.float32)
-        extra = np.empty((height, width, dim - 4), dtype=np.float32)
         bg = float32_array(background)
-        _finish_forward(float32_array(image), float32_array(alpha), bg, rgb, depth, extra)
-        ctx.bg, ctx.shape = bg, (height, width, dim)
-        return torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(extra)
+        _finish_forward(float32_array(image), float32_array(alpha), bg, rgb, depth)
+        ctx.bg, ctx.shape = bg, (height, width)
+        return torch.from_numpy(rgb), torch.from_numpy(depth)
 
     @staticmethod
-    def backward(ctx, grad_rgb: Tensor | None, grad_depth: Tensor | None, grad_extra: Tensor | None):  # type: ignore[override]
-        height, width, dim = ctx.shape
+    def backward(ctx, grad_rgb: Tensor | None, grad_depth: Tensor | None):  # type: ignore[override]
+        height, width = ctx.shape
         rgb = np.zeros((height, width, 3), dtype=np.float32) if grad_rgb is None else float32_array(grad_rgb)
         depth = np.empty((0, 0), dtype=np.float32) if grad_depth is None else float32_array(grad_depth)
-        extra = np.empty((0, 0, 0), dtype=np.float32) if grad_extra is None or dim == 4 else float32_array(grad_extra)
-        grad_image = np.empty((height, width, dim), dtype=np.float32)
+        grad_image = np.empty((height, width, 4), dtype=np.float32)
         grad_alpha = np.empty((height, width), dtype=np.float32)
-        _finish_backward(rgb, depth, extra, ctx.bg, grad_image, grad_alpha)
+        _finish_backward(rgb, depth, ctx.bg, grad_image, grad_alpha)
         return torch.from_numpy(grad_image), torch.from_numpy(grad_alpha), None
 
 
-def finish_image_cpu(image: Tensor, alpha: Tensor, background: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(rgb [H, W, 3] = colour + (1 - alpha) * background, depth [H, W], extra [H, W, C]) from a composited image
-    [H, W, 3 + 1 + C] (colour, depth, C feature channels) and its alpha [H, W]: the arithmetic of
-    ``rasterize``'s torch form, differentiable with respect to ``image`` and ``alpha`` (not ``background``), for
-    float32 CPU tensors."""
-    if image.dtype != torch.float32 or image.device.type != "cpu" or image.dim() != 3 or image.shape[-1] < 4:
-        raise ValueError(f"finish_image_cpu: image must be a float32 CPU [H, W, 4 + C] tensor, got {image.dtype} {list(image.shape)} on {image.device}")
+def finish_image_cpu(image: Tensor, alpha: Tensor, background: Tensor) -> tuple[Tensor, Tensor]:
+    """(rgb [H, W, 3] = colour + (1 - alpha) * background, depth [H, W]) from a composited image [H, W, 3 + 1]
+    (colour, depth) and its alpha [H, W]: the arithmetic of ``rasterize``'s torch form, differentiable with respect
+    to ``image`` and ``alpha`` (not ``background``), for float32 CPU tensors."""
+    if image.dtype != torch.float32 or image.device.type != "cpu" or image.dim() != 3 or image.shape[-1] != 4:
+        raise ValueError(f"finish_image_cpu: image must be a float32 CPU [H, W, 4] tensor, got {image.dtype} {list(image.shape)} on {image.device}")
     if background.requires_grad:
         raise ValueError("finish_image_cpu: the background gets no gradient here; composite it in torch to learn it")
     return _FinishImageCPU.apply(image, alpha, background)
@@ -697,20 +714,22 @@ def composite_cpu(
     height: int,
     tile_size: int = TILE_SIZE,
     tile_channels: Tensor | None = None,
-) -> tuple[Tensor, Tensor]:
-    """Same contract as ``composite_reference``: image [H, W, D] and alpha [H, W], differentiable; a tile composites
-    only its ``tile_channels`` leading channels (and pays for those only)."""
+    image_channels: int | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Same contract as ``composite_reference``: image [H, W, A], alpha [H, W] and extra [H, W, D - A],
+    differentiable; a tile composites only its ``tile_channels`` leading channels (and pays for those only)."""
     bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
     longest = int(np.diff(bins.tile_offsets).max()) if bins.tile_offsets.shape[0] > 1 else 0
     if longest >= _MAX_TILE_LIST:
         raise ValueError(f"composite_cpu: a tile holds {longest} Gaussians; the kernel counts a pixel's list position "
                          f"in float32, exact below {_MAX_TILE_LIST}")
     dim = features.shape[1]
+    image_channels = image_channel_count(image_channels, dim)
     if tile_channels is None:
         tile_dims = np.full(bins.tiles_x * bins.tiles_y, dim, dtype=np.int64)
-    else:
-        tile_dims = np.minimum(tile_channels.detach().cpu().numpy().astype(np.int64).reshape(-1), dim)
-    return _CompositeCPU.apply(means2d, conics, opacities, features, bins, width, height, tile_dims)
+    else:  # every tile composites the image's channels: the kernel writes those everywhere
+        tile_dims = np.clip(tile_channels.detach().cpu().numpy().astype(np.int64).reshape(-1), image_channels, dim)
+    return _CompositeCPU.apply(means2d, conics, opacities, features, bins, width, height, tile_dims, image_channels)
 
 
 @torch.no_grad()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN, tile_grid
+from pidg.render.projection import ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN, image_channel_count, tile_grid
 
 
 def composite_reference(
@@ -25,16 +25,32 @@ def composite_reference(
     height: int,
     tile_size: int = TILE_SIZE,
     tile_channels: Tensor | None = None,
-) -> tuple[Tensor, Tensor]:
-    """Alpha-composite per-Gaussian features [N, D] into an image [H, W, D]; also returns alpha [H, W].
+    image_channels: int | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Alpha-composite per-Gaussian features [N, D]: returns the image [H, W, A] of the leading ``image_channels``
+    A (None: all D), alpha [H, W], and the other channels' image ``extra`` [H, W, D - A].
 
     Gaussians with ``radii == 0`` are ignored. ``radii`` must bound every pixel where alpha >= 1/255 (as
     ``project_gaussians`` guarantees), otherwise contributions would be cut at tile borders. ``tile_channels``
-    [tiles_y * tiles_x] (row-major tiles): channels from that count on are 0 in that tile (see ``rasterize``).
+    [tiles_y * tiles_x] (row-major tiles): channels from that count on (never fewer than A) are 0 in that tile
+    (see ``rasterize``).
     """
+    dim = features.shape[1]
+    image_channels = image_channel_count(image_channels, dim)
+    image, alpha = _composite_all(means2d, conics, opacities, features, depths, radii, width, height, tile_size)
     if tile_channels is not None:
-        image, alpha = composite_reference(means2d, conics, opacities, features, depths, radii, width, height, tile_size)
-        return image * channels_below(tile_channels, features.shape[1], width, height, tile_size).to(image.dtype), alpha
+        kept = channels_below(tile_channels.clamp_min(image_channels), dim, width, height, tile_size)
+        image = image * kept.to(image.dtype)
+    colour, extra = image.split([image_channels, dim - image_channels], dim=-1)
+    return colour, alpha, extra
+
+
+def _composite_all(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, features: Tensor, depths: Tensor, radii: Tensor, width: int,
+    height: int, tile_size: int,
+) -> tuple[Tensor, Tensor]:
+    """``composite_reference``'s arithmetic: every channel of ``features`` [N, D] into one image [H, W, D], and
+    alpha [H, W]."""
     dim = features.shape[1]
     tiles_x, tiles_y = tile_grid(width, height, tile_size)
     visible = (radii > 0).all(dim=-1)

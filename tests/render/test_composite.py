@@ -134,8 +134,8 @@ def _gradients_by_backend(scene: GaussianScene, camera: Camera, **render_options
     return grads, outs
 
 
-def _assert_gradients_match(grads: dict, tol: float) -> None:
-    for name, g_ref, g_cpu in zip(_GRADIENT_NAMES, grads["torch"], grads["cpu"]):
+def _assert_gradients_match(grads: dict, tol: float, names: list[str] = _GRADIENT_NAMES) -> None:
+    for name, g_ref, g_cpu in zip(names, grads["torch"], grads["cpu"], strict=True):
         rel = ((g_ref - g_cpu).norm() / g_ref.norm()).item()
         assert g_ref.norm() > 0, name
         assert rel < tol, f"{name}: relative gradient error {rel:.2e}"
@@ -239,6 +239,45 @@ def test_feature_pixels_composite_features_in_their_tiles_only(backend):
             assert torch.equal(a, b), name
         else:
             torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("restricted", [False, True])
+def test_the_image_and_extra_channels_of_the_kernel_are_the_references(restricted):
+    """``image_channels``: the compositors return the leading channels as the image and the rest as ``extra``, each
+    its own array; the kernel's outputs and gradients equal the reference's whichever of image, alpha and extra a
+    loss reads (autograd sends None for the others: the kernel then skips the extra channels' backward), with and
+    without tiles that composite the image's channels only."""
+    from pidg.render.projection import project_gaussians
+    from pidg.render.rasterize_cpu import composite_cpu
+    from pidg.render.rasterize_torch import composite_reference
+
+    camera = CAMERAS["wide"]()
+    scene = hard_scene(camera, 150, torch.float32, n_features=5, seed=5)
+    with torch.no_grad():
+        proj = project_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, camera)
+    per_gaussian = torch.cat([scene.colors, proj.depths[:, None], scene.features], dim=-1)  # 3 + 1 + 5 channels
+    tiles = None
+    if restricted:  # five tiles composite all 9 channels, the rest only the image's 4 (a count below 4 means 4)
+        tiles = torch.tensor([9, 4, 2, 9, 4, 4, 4, 9, 9, 4, 9, 0, 4, 4, 4])
+    gen = torch.Generator().manual_seed(4)
+    weights = [torch.randn(camera.height, camera.width, *k, generator=gen) for k in ((4,), (), (5,))]
+    for read in [(True, True, True), (True, True, False), (False, False, True), (True, False, False)]:
+        results = []
+        for composite in (composite_reference, composite_cpu):
+            leaves = [t.detach().clone().requires_grad_(True) for t in (proj.means2d, proj.conics, scene.opacities, per_gaussian)]
+            outputs = composite(*leaves, proj.depths, proj.radii, camera.width, camera.height, 16, tiles, image_channels=4)
+            assert [tuple(o.shape) for o in outputs] == [(38, 70, 4), (38, 70), (38, 70, 5)]
+            sum(((o * w).sum() for o, w, r in zip(outputs, weights, read) if r), torch.zeros(())).backward()
+            results.append([o.detach() for o in outputs] + [t.grad for t in leaves])
+        for name, ref, got in zip(["image", "alpha", "extra"], results[0][:3], results[1][:3]):
+            torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-6, msg=f"{name} reading {read}")
+        # float32 against the reference, as test_gradients_match_reference
+        _assert_gradients_match({"torch": results[0][3:], "cpu": results[1][3:]}, 1e-4, ["means2d", "conics", "opacities", "features"])
+        if not read[2]:  # nothing reads the extra channels: no gradient reaches their per-Gaussian values
+            assert results[1][-1][:, 4:].abs().max() == 0
+    with pytest.raises(ValueError, match=r"image_channels must be in \[0, 9\]"):
+        composite_cpu(proj.means2d, proj.conics, scene.opacities, per_gaussian, proj.depths, proj.radii, camera.width,
+                      camera.height, image_channels=10)
 
 
 def test_feature_pixels_of_the_wrong_size_are_named():
@@ -389,46 +428,54 @@ def test_bins_are_each_tiles_gaussians_front_to_back(dtype):
         assert sorted(bins.slot_of_isect[mine].tolist()) == list(range(bins.gauss_offsets[g], bins.gauss_offsets[g + 1]))
 
 
-@pytest.mark.parametrize("n_features", [0, 3])
-def test_finish_image_is_the_torch_arithmetic(n_features):
-    """``finish_image_cpu`` (rgb over the background, depth, features as separate arrays, in one pass): its outputs
-    and the gradients of image and alpha equal the torch form's, whichever outputs a loss reads (autograd sends
-    None for the others, which count as zeros)."""
+def test_finish_image_is_the_torch_arithmetic():
+    """``finish_image_cpu`` (rgb over the background and depth as separate arrays, in one pass): its outputs and the
+    gradients of image and alpha equal the torch form's, whichever outputs a loss reads (autograd sends None for the
+    others, which count as zeros)."""
     from pidg.render.rasterize_cpu import finish_image_cpu
 
     gen = torch.Generator().manual_seed(0)
-    image = torch.rand(9, 13, 4 + n_features, generator=gen)
+    image = torch.rand(9, 13, 4, generator=gen)
     alpha = torch.rand(9, 13, generator=gen)
     background = torch.tensor([1.0, 0.25, 0.5])
-    for read in [(True, True, True), (True, False, False), (False, True, False), (False, False, True)]:
-        if not any(r for r, k in zip(read, (3, 1, n_features)) if k):
-            continue
+    for read in [(True, True), (True, False), (False, True)]:
         results = []
         for kernel in (False, True):
             x, a = image.clone().requires_grad_(True), alpha.clone().requires_grad_(True)
             if kernel:
                 outputs = finish_image_cpu(x, a, background)
             else:
-                colour, depth, extra = x.split([3, 1, n_features], dim=-1)
-                outputs = (colour + (1.0 - a).unsqueeze(-1) * background, depth.squeeze(-1), extra)
+                colour, depth = x.split([3, 1], dim=-1)
+                outputs = (colour + (1.0 - a).unsqueeze(-1) * background, depth.squeeze(-1))
             weights = torch.Generator().manual_seed(1)
-            loss = sum((o * torch.randn(o.shape, generator=weights)).sum() for o, r in zip(outputs, read) if r and o.numel())
+            loss = sum((o * torch.randn(o.shape, generator=weights)).sum() for o, r in zip(outputs, read) if r)
             (loss + a.square().sum()).backward()  # alpha also reaches the loss directly, as the renders' alpha does
             results.append([o.detach() for o in outputs] + [x.grad, a.grad])
-        for name, ref, got in zip(["rgb", "depth", "extra", "d image", "d alpha"], *results):
+        for name, ref, got in zip(["rgb", "depth", "d image", "d alpha"], *results):
             assert got.shape == ref.shape, name
             torch.testing.assert_close(got, ref, rtol=1e-6, atol=1e-6, msg=name)
     with pytest.raises(ValueError, match="float32 CPU"):
         finish_image_cpu(image.double(), alpha.double(), background.double())
+    with pytest.raises(ValueError, match=r"\[H, W, 4\]"):
+        finish_image_cpu(torch.rand(9, 13, 7), alpha, background)
 
 
-def test_tiles_touched_are_the_tiles_holding_a_pixel():
-    """Against a loop over the tiles, on an image whose last tile row and column are partial."""
+@pytest.mark.parametrize("tile_size", [16, 8, 5])
+def test_tiles_touched_are_the_tiles_holding_a_pixel(tile_size):
+    """Against a loop over the tiles, on an image whose last tile row and column are partial; sizes a multiple of 8
+    read a tile row as int64 words, the others as bools."""
     from pidg.render.api import tiles_touched
 
     gen = torch.Generator().manual_seed(3)
     pixels = torch.rand(37, 50, generator=gen) > 0.995
     pixels[36, 49] = True  # the partial corner tile
-    expected = torch.tensor([[bool(pixels[y:y + 16, x:x + 16].any()) for x in range(0, 50, 16)] for y in range(0, 37, 16)])
+    pixels[17, 8] = True  # the first pixel of the second word of a 16-wide tile's row
+    expected = torch.tensor([[bool(pixels[y:y + tile_size, x:x + tile_size].any()) for x in range(0, 50, tile_size)]
+                             for y in range(0, 37, tile_size)])
     assert expected.sum() < expected.numel()  # some tiles are empty
-    assert torch.equal(tiles_touched(pixels, 16), expected)
+    assert torch.equal(tiles_touched(pixels, tile_size), expected)
+    # whole tiles (F.pad returns the input itself) of a view: strided, at an odd offset in its storage
+    whole = torch.zeros(49, 81, dtype=torch.bool)
+    whole[1:, 1:] = torch.rand(48, 80, generator=gen) > 0.995
+    assert torch.equal(tiles_touched(whole[1:, 1:], tile_size), tiles_touched(whole[1:, 1:].clone(), tile_size))
+    assert torch.equal(tiles_touched(whole[1:, 1:], 16), whole[1:, 1:].reshape(3, 16, 5, 16).any(3).any(1))

@@ -39,7 +39,7 @@ def _fake_gsplat(isotropic_radii: bool) -> types.ModuleType:
         proj = project_gaussians(kw["means"], kw["quats"], kw["scales"], kw["opacities"], camera)
         means2d = proj.means2d[None]  # the gradient arrives here, as in gsplat
         per = torch.cat([kw["colors"], proj.depths[:, None]], dim=-1)
-        image, alpha = composite_reference(means2d[0], proj.conics, kw["opacities"], per, proj.depths, proj.radii, kw["width"], kw["height"])
+        image, alpha, _ = composite_reference(means2d[0], proj.conics, kw["opacities"], per, proj.depths, proj.radii, kw["width"], kw["height"])
         radii = proj.radii.max(dim=-1).values if isotropic_radii else proj.radii
         return image[None], alpha[None, ..., None], {"means2d": means2d, "radii": radii[None], "depths": proj.depths[None]}
 
