@@ -212,7 +212,7 @@ def _padded(n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always")
-def _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, k_from, k_to, table, tfeat):  # pragma: no cover - compiled
+def _fill_tile(means2d, conics, opacities, feats, extra_feats, isect_ids, start, x_lo, k_from, k_to, table, tfeat):  # pragma: no cover - compiled
     """Copy the tile's Gaussians k_from .. k_to - 1 into contiguous local arrays, with their per-Gaussian row bounds.
 
     Filled on demand: pixels saturate long before the end of a crowded tile's list (at a quarter of it on the
@@ -221,7 +221,8 @@ def _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, k_from
     tail test. The caller allocates the arrays: arrays *returned* from an inlined function cost a 2.5x slowdown
     of the lane loops (measured), apparently because the compiler can no longer prove they do not alias.
     """
-    dim = tfeat.shape[1]  # the tile's channels: the leading ones of feats
+    dim = tfeat.shape[1]  # the tile's channels: the image's (feats), then the extra ones (extra_feats)
+    n_image = min(dim, feats.shape[1])
     n = tfeat.shape[0]
     for k in range(k_from, min(k_to, n)):
         g = isect_ids[start + k]
@@ -242,8 +243,10 @@ def _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, k_from
         table[_INV_A, k] = 1.0 / a
         table[_B_OVER_A, k] = b / a
         table[_DET_OVER_A, k] = det / a
-        for d in range(dim):
+        for d in range(n_image):
             tfeat[k, d] = feats[g, d]
+        for d in range(n_image, dim):
+            tfeat[k, d] = extra_feats[g, d - n_image]
     for k in range(max(k_from, n), k_to):  # padding: finite values, and an empty row range
         for col in range(_N_COLS):
             table[col, k] = 0.0
@@ -317,7 +320,7 @@ def _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight):  # pragma: no c
 
 @njit(parallel=True, cache=True, nogil=True)
 def _forward_tiles(
-    means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x, out_img,
+    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x, out_img,
     out_extra, out_trans, out_end
 ):  # pragma: no cover - compiled
     n_tiles = tile_offsets.shape[0] - 1
@@ -356,7 +359,7 @@ def _forward_tiles(
             for k0 in range(0, n_k, CULL_BLOCK):
                 if k0 == filled:
                     filled = min(filled + FILL_BLOCK, table.shape[1])
-                    _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, k0, filled, table, tfeat)
+                    _fill_tile(means2d, conics, opacities, feats, extra_feats, isect_ids, start, x_lo, k0, filled, table, tfeat)
                 n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
                 for i in range(n_hits):
                     k = hits[i]
@@ -421,7 +424,7 @@ def _reaching_tiles(
             for k0 in range(0, n_k, CULL_BLOCK):
                 if k0 == filled:
                     filled = min(filled + FILL_BLOCK, table.shape[1])
-                    _fill_tile(means2d, conics, opacities, no_channels, isect_ids, start, x_lo, k0, filled, table, no_channels)
+                    _fill_tile(means2d, conics, opacities, no_channels, no_channels, isect_ids, start, x_lo, k0, filled, table, no_channels)
                 n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
                 for j in range(n_hits):
                     k = hits[j]
@@ -450,8 +453,8 @@ def _any_per_gaussian(reached, gauss_offsets, out):  # pragma: no cover - compil
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
-    means2d, conics, opacities, feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x,
-    out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads,
+    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x,
+    out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, isect_extra,
 ):  # pragma: no cover - compiled
     """Per (tile, Gaussian) gradients, back to front.
 
@@ -479,12 +482,12 @@ def _backward_tiles(
         for py in range(y_lo, y_hi):
             for px in range(x_lo, x_hi):
                 k_tile_end = max(k_tile_end, out_end[py, px])
-        _fill_tile(means2d, conics, opacities, feats, isect_ids, start, x_lo, 0, _padded(k_tile_end), table, tfeat)
+        _fill_tile(means2d, conics, opacities, feats, extra_feats, isect_ids, start, x_lo, 0, _padded(k_tile_end), table, tfeat)
         misses = np.empty(CULL_BLOCK, dtype=np.float32)
         hits = np.empty(CULL_BLOCK, dtype=np.int64)
         # gradient sums per (tile, Gaussian): each row adds its lane sums once (per-lane accumulators cost
         # 16x the read-modify-write traffic, measured ~25% of the backward)
-        kgrads = np.zeros((k_tile_end, n_slots), dtype=np.float32)
+        kgrads = np.zeros((k_tile_end, _N_PARAMS + dim), dtype=np.float32)
         trans = np.empty(LANES, dtype=np.float32)
         trans_final = np.empty(LANES, dtype=np.float32)
         g_alpha_out = np.empty(LANES, dtype=np.float32)
@@ -577,6 +580,8 @@ def _backward_tiles(
             slot = slot_of_isect[start + k]
             for j in range(n_slots):
                 isect_grads[slot, j] = kgrads[k, j]
+            for j in range(n_slots, _N_PARAMS + dim):  # the extra channels' (their array stays 0 in other tiles)
+                isect_extra[slot, j - n_slots] = kgrads[k, j]
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -592,6 +597,13 @@ def _reduce_per_gaussian(isect_grads, gauss_offsets, out):  # pragma: no cover -
                 out[g, j] += isect_grads[i, j]
 
 
+def _split_columns(features: Tensor, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-Gaussian features [N, D] as two contiguous float32 arrays, the first ``count`` columns and the others:
+    tiles that composite the first ones only read a narrow array, which stays in cache where [N, D] rows would not."""
+    values = float32_array(features)
+    return np.ascontiguousarray(values[:, :count]), np.ascontiguousarray(values[:, count:])
+
+
 class _CompositeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int, tile_dims: np.ndarray, image_channels: int):  # type: ignore[override]
@@ -605,7 +617,8 @@ class _CompositeCPU(torch.autograd.Function):
         extra = (np.empty if everywhere else np.zeros)((height, width, dim - image_channels), dtype=np.float32)
         trans = np.empty((height, width), dtype=np.float32)
         end = np.empty((height, width), dtype=np.int32)
-        args = (float32_array(means2d), float32_array(conics), float32_array(opacities), float32_array(features), bins.tile_offsets, bins.isect_ids, tile_dims)
+        feats, extra_feats = _split_columns(features, image_channels)
+        args = (float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets, bins.isect_ids, tile_dims)
         with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
             _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, extra, trans, end)
         ctx.save_for_backward(means2d, conics, opacities, features)
@@ -624,17 +637,24 @@ class _CompositeCPU(torch.autograd.Function):
             tile_dims, grad_extra = np.minimum(tile_dims, image_channels), torch.zeros(0, 0, 0)
         img_grad = np.zeros((height, width, image_channels), np.float32) if grad_img is None else float32_array(grad_img)
         alpha_grad = np.zeros((height, width), np.float32) if grad_alpha is None else float32_array(grad_alpha)
-        isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + dim), dtype=np.float32)  # rows no pixel reached: 0
+        # per intersection, rows no pixel reached are 0; the extra channels' columns apart, written by their tiles only
+        isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + image_channels), dtype=np.float32)
+        extra_used = bool((tile_dims > image_channels).any())
+        isect_extra = np.zeros((bins.num_intersections if extra_used else 0, dim - image_channels), dtype=np.float32)
+        feats, extra_feats = _split_columns(features, image_channels)
         with numba.parallel_chunksize(1):
             _backward_tiles(
-                float32_array(means2d), float32_array(conics), float32_array(opacities), float32_array(features), bins.tile_offsets, bins.isect_ids,
-                tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad, float32_array(grad_extra),
-                alpha_grad, bins.slot_of_isect, isect_grads,
+                float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
+                bins.isect_ids, tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
+                float32_array(grad_extra), alpha_grad, bins.slot_of_isect, isect_grads, isect_extra,
             )
-        per_gauss = np.empty((n, _N_PARAMS + dim), dtype=np.float64)
+        per_gauss = np.empty((n, _N_PARAMS + image_channels), dtype=np.float64)
         _reduce_per_gaussian(isect_grads, bins.gauss_offsets, per_gauss)
-        g = torch.from_numpy(per_gauss).to(features.dtype)
-        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, _N_PARAMS:], None, None, None, None, None
+        per_gauss_extra = np.zeros((n, dim - image_channels), dtype=np.float64)
+        if extra_used:
+            _reduce_per_gaussian(isect_extra, bins.gauss_offsets, per_gauss_extra)
+        g, g_extra = torch.from_numpy(per_gauss).to(features.dtype), torch.from_numpy(per_gauss_extra).to(features.dtype)
+        return g[:, 0:2], g[:, 2:5], g[:, 5], torch.cat([g[:, _N_PARAMS:], g_extra], dim=1), None, None, None, None, None
 
 
 @njit(parallel=True, cache=True, nogil=True)

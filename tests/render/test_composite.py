@@ -343,8 +343,8 @@ def test_row_cull_never_drops_a_gaussian_that_reaches_the_row():
     opacities = rng.uniform(0.01, 0.999, n).astype(np.float32)
     feats = np.zeros((n, 1), np.float32)
     table = np.empty((12, _padded(n)), np.float32)
-    _fill_tile(means2d, conics, opacities, feats, np.arange(n, dtype=np.int64), 0, x_lo, 0, _padded(n), table,
-               np.empty((n, 1), np.float32))
+    _fill_tile(means2d, conics, opacities, feats, np.zeros((n, 0), np.float32), np.arange(n, dtype=np.int64), 0, x_lo, 0,
+               _padded(n), table, np.empty((n, 1), np.float32))
     misses, hits = np.empty(CULL_BLOCK, np.float32), np.empty(CULL_BLOCK, np.int64)
     px = x_lo + np.arange(lanes) + 0.5
     kept_total = reaching_total = 0
