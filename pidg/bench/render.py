@@ -15,7 +15,7 @@ import torch
 from pidg.bench.provenance import git_commit, machine, machine_line
 from pidg.bench.timing import interleaved_medians, peak_rss_growth_mib
 from pidg.render import rasterize
-from pidg.render.projection import project_gaussians
+from pidg.render.projection import TILE_SIZE, project_gaussians, tiles_touched
 from pidg.render.rasterize_cpu import bin_gaussians, composite_cpu, count_pixel_gaussian_pairs
 from pidg.render.rasterize_torch import composite_reference
 from pidg.render.scenes import GaussianScene, orbit_camera, random_scene
@@ -41,6 +41,9 @@ class RenderBenchConfig:
     repeats: int = 7
     reference_repeats: int = 3
     feature_channels: tuple[int, ...] = (0, 8, 32)  # C sweep on case b, kernel only
+    feature_tile_share: float = 0.05
+    """The sweep also renders its first C > 0 read at a centred square of about this share of the 16x16 tiles only
+    (``feature_pixels``), as the flow loss reads its features: the render pays for those tiles' features only."""
     seed: int = 0
 
 
@@ -60,7 +63,11 @@ def _peak_memory_mb(n_gaussians: int, size: int, seed: int, backend: str) -> flo
         return float("nan")
 
 
-def _render_fns(scene: GaussianScene, size: int, backend: str) -> tuple[Callable[[], None], Callable[[], None]]:
+def _render_fns(
+    scene: GaussianScene, size: int, backend: str, feature_pixels: torch.Tensor | None = None
+) -> tuple[Callable[[], None], Callable[[], None]]:
+    """Forward, and forward + backward of a loss on every output, of ``rasterize`` (its features read at
+    ``feature_pixels`` only when given)."""
     camera = orbit_camera(size, size)
     params = [t.detach().clone().requires_grad_(True) for t in scene.params()]
     means, quats, scales, opacities, colors, *rest = params
@@ -68,7 +75,8 @@ def _render_fns(scene: GaussianScene, size: int, backend: str) -> tuple[Callable
     weights = torch.rand(size, size, 3, generator=torch.Generator().manual_seed(1))
 
     def render():
-        return rasterize(means, quats, opacities, colors, camera, scales=scales, features=features, backend=backend)
+        return rasterize(means, quats, opacities, colors, camera, scales=scales, features=features, backend=backend,
+                         feature_pixels=feature_pixels)
 
     def forward() -> None:
         with torch.no_grad():
@@ -76,7 +84,8 @@ def _render_fns(scene: GaussianScene, size: int, backend: str) -> tuple[Callable
 
     def forward_backward() -> None:
         out = render()
-        loss = (out.rgb * weights).sum() + out.depth.mean() + (out.features.sum() if out.features is not None else 0.0)
+        features_read = out.features if feature_pixels is None or out.features is None else out.features[feature_pixels]
+        loss = (out.rgb * weights).sum() + out.depth.mean() + (features_read.sum() if features_read is not None else 0.0)
         loss.backward()
         for p in params:
             p.grad = None
@@ -173,15 +182,32 @@ def _feature_sweep(config: RenderBenchConfig, log: Callable[[str], None]) -> lis
     """Kernel fwd+bwd at case b for several extra-channel counts C, interleaved."""
     base_case = next((c for c in config.cases if c.name == "b"), config.cases[0])
     camera = orbit_camera(base_case.size, base_case.size)
-    fns = {}
+    fns: dict[tuple[int, float], Callable[[], None]] = {}
     for n_feat in config.feature_channels:
         scene = random_scene(base_case.n_gaussians, camera, n_features=n_feat, seed=config.seed)
-        fns[n_feat] = _render_fns(scene, base_case.size, "cpu")[1]
+        fns[(n_feat, 1.0)] = _render_fns(scene, base_case.size, "cpu")[1]
+    sparse = next((c for c in config.feature_channels if c > 0), None)
+    if sparse is not None and config.feature_tile_share < 1:
+        pixels = _centre_tiles(base_case.size, config.feature_tile_share)
+        share = float(tiles_touched(pixels, TILE_SIZE).float().mean())
+        scene = random_scene(base_case.n_gaussians, camera, n_features=sparse, seed=config.seed)
+        fns[(sparse, share)] = _render_fns(scene, base_case.size, "cpu", feature_pixels=pixels)[1]
     med = interleaved_medians(fns, {k: config.repeats for k in fns})
-    sweep = [{"channels": c, "forward_backward_ms": 1e3 * t} for c, t in med.items()]
+    sweep = [{"channels": c, "tile_share": share, "forward_backward_ms": 1e3 * t} for (c, share), t in med.items()]
     log(f"extra feature channels at case {base_case.name} (kernel fwd+bwd): "
-        + ", ".join(f"C={c}: {1e3 * t:.1f} ms" for c, t in med.items()))
+        + ", ".join(f"C={c}{'' if share == 1 else f' on {100 * share:.0f}% of the tiles'}: {1e3 * t:.1f} ms"
+                    for (c, share), t in med.items()))
     return sweep
+
+
+def _centre_tiles(size: int, share: float) -> torch.Tensor:
+    """[size, size] bool: every pixel of a centred square of about ``share`` of the image's tiles (at least one)."""
+    tiles = -(-size // TILE_SIZE)
+    side = max(1, round((share * tiles * tiles) ** 0.5))
+    lo = (tiles - side) // 2 * TILE_SIZE
+    pixels = torch.zeros(size, size, dtype=torch.bool)
+    pixels[lo:lo + side * TILE_SIZE, lo:lo + side * TILE_SIZE] = True
+    return pixels
 
 
 def _scaling(config: RenderBenchConfig, rows: list[dict], log: Callable[[str], None]) -> dict | None:

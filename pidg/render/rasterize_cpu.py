@@ -454,7 +454,7 @@ def _any_per_gaussian(reached, gauss_offsets, out):  # pragma: no cover - compil
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
     means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x,
-    out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, isect_extra,
+    out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, extra_rows, isect_extra,
 ):  # pragma: no cover - compiled
     """Per (tile, Gaussian) gradients, back to front.
 
@@ -580,8 +580,23 @@ def _backward_tiles(
             slot = slot_of_isect[start + k]
             for j in range(n_slots):
                 isect_grads[slot, j] = kgrads[k, j]
-            for j in range(n_slots, _N_PARAMS + dim):  # the extra channels' (their array stays 0 in other tiles)
-                isect_extra[slot, j - n_slots] = kgrads[k, j]
+            for j in range(n_slots, _N_PARAMS + dim):  # the extra channels': rows of their own tiles only
+                isect_extra[extra_rows[tile] + k, j - n_slots] = kgrads[k, j]
+
+
+@njit(cache=True, nogil=True)
+def _add_extra_per_gaussian(isect_extra, extra_rows, tile_offsets, isect_ids, out):  # pragma: no cover - compiled
+    """Each Gaussian's gradient of the extra channels: the rows the backward wrote for the tiles that composite them
+    (``extra_rows[tile]`` the first, -1 for the others), added in tile order (serially: they are few)."""
+    for tile in range(extra_rows.shape[0]):
+        first = extra_rows[tile]
+        if first < 0:
+            continue
+        start = tile_offsets[tile]
+        for k in range(tile_offsets[tile + 1] - start):
+            g = isect_ids[start + k]
+            for j in range(isect_extra.shape[1]):
+                out[g, j] += isect_extra[first + k, j]
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -637,22 +652,23 @@ class _CompositeCPU(torch.autograd.Function):
             tile_dims, grad_extra = np.minimum(tile_dims, image_channels), torch.zeros(0, 0, 0)
         img_grad = np.zeros((height, width, image_channels), np.float32) if grad_img is None else float32_array(grad_img)
         alpha_grad = np.zeros((height, width), np.float32) if grad_alpha is None else float32_array(grad_alpha)
-        # per intersection, rows no pixel reached are 0; the extra channels' columns apart, written by their tiles only
+        # per intersection, rows no pixel reached are 0; the extra channels' apart, for the tiles that composite them
         isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + image_channels), dtype=np.float32)
-        extra_used = bool((tile_dims > image_channels).any())
-        isect_extra = np.zeros((bins.num_intersections if extra_used else 0, dim - image_channels), dtype=np.float32)
+        extra_tiles = tile_dims > image_channels
+        lengths = np.diff(bins.tile_offsets) * extra_tiles
+        extra_rows = np.where(extra_tiles, np.cumsum(lengths) - lengths, -1)
+        isect_extra = np.zeros((int(lengths.sum()), dim - image_channels), dtype=np.float32)
         feats, extra_feats = _split_columns(features, image_channels)
         with numba.parallel_chunksize(1):
             _backward_tiles(
                 float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
                 bins.isect_ids, tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
-                float32_array(grad_extra), alpha_grad, bins.slot_of_isect, isect_grads, isect_extra,
+                float32_array(grad_extra), alpha_grad, bins.slot_of_isect, isect_grads, extra_rows, isect_extra,
             )
         per_gauss = np.empty((n, _N_PARAMS + image_channels), dtype=np.float64)
         _reduce_per_gaussian(isect_grads, bins.gauss_offsets, per_gauss)
         per_gauss_extra = np.zeros((n, dim - image_channels), dtype=np.float64)
-        if extra_used:
-            _reduce_per_gaussian(isect_extra, bins.gauss_offsets, per_gauss_extra)
+        _add_extra_per_gaussian(isect_extra, extra_rows, bins.tile_offsets, bins.isect_ids, per_gauss_extra)
         g, g_extra = torch.from_numpy(per_gauss).to(features.dtype), torch.from_numpy(per_gauss_extra).to(features.dtype)
         return g[:, 0:2], g[:, 2:5], g[:, 5], torch.cat([g[:, _N_PARAMS:], g_extra], dim=1), None, None, None, None, None
 
