@@ -22,7 +22,9 @@ Pipeline, with no Python loop over Gaussians:
      whatever the thread schedule.
      The leading channels (colour and depth) go to the image and the rest (a loss's features) to an array of their
      own, so that a few feature tiles do not widen every pixel's row of the image: strided into one
-     [H, W, 4 + 8] array, the image's and its gradient's cache lines tripled (~5 ms of a 400x400 step).
+     [H, W, 4 + 8] array, the image's and its gradient's cache lines tripled (~5 ms of a 400x400 step). Likewise
+     the tiles read the two groups' per-Gaussian values from two arrays, and the extra channels' gradients are kept
+     for their own tiles only and added per Gaussian in one serial pass over those tiles.
   4. ``finish_image_cpu``: the composited colour and depth become rgb over the background and depth, each a
      contiguous array, in one pass; its backward assembles the image's gradient in one pass too.
   5. ``gaussians_reaching_cpu`` (not part of a render): the forward pass's hit and stop rules on a pixel mask only,
