@@ -292,13 +292,13 @@ class Trainer:
         fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy == "fit"
         stopped_by = None
         torch_threads = torch.get_num_threads()
-        on_cpu_threads = self.device.type == "cpu" and cfg.cpu_torch_threads
+        on_cpu_threads = self.device.type == "cpu" and bool(cfg.cpu_torch_threads)  # torch's own ops on that many threads
         products_threads = (cfg.cpu_matmul_threads or torch_threads) if on_cpu_threads else None
         try:
             with _GracefulInterrupt() as interrupt, matmul_threads(products_threads):
                 while self.step < total:
                     t0 = self.clock()
-                    if self.device.type == "cpu" and cfg.cpu_torch_threads:
+                    if on_cpu_threads:
                         # every step: numba's thread pool, started by the first kernel, resets OpenMP's count
                         torch.set_num_threads(cfg.cpu_torch_threads)
                     try:
