@@ -22,7 +22,10 @@ EXP_MIN_ARGUMENT = -87.0  # 2^n stays a normal float32 (n >= -126) for every x >
 
 def float32_array(t: Tensor) -> np.ndarray:
     """What the kernels take: a tensor's values as a C-contiguous float32 numpy array, detached (a view of the
-    tensor's memory when it is one already, else a copy)."""
+    tensor's memory when it is one already, else a copy). The view skips the no-op conversions: a full step makes
+    ~250 of these calls, and each torch call costs microseconds (6.5 -> 2.3 us, 4.2 with a detach)."""
+    if t.dtype == torch.float32 and t.device.type == "cpu" and t.is_contiguous():
+        return (t.detach() if t.requires_grad else t).numpy()
     return t.detach().to(torch.float32).contiguous().numpy()
 
 
