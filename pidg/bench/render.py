@@ -15,7 +15,7 @@ import torch
 from pidg.bench.provenance import git_commit, machine, machine_line
 from pidg.bench.timing import interleaved_medians, peak_rss_growth_mib
 from pidg.render import rasterize
-from pidg.render.projection import TILE_SIZE, project_gaussians, tiles_touched
+from pidg.render.projection import TILE_SIZE, project_gaussians, tile_grid, tiles_touched
 from pidg.render.rasterize_cpu import bin_gaussians, composite_cpu, count_pixel_gaussian_pairs
 from pidg.render.rasterize_torch import composite_reference
 from pidg.render.scenes import GaussianScene, orbit_camera, random_scene
@@ -202,7 +202,7 @@ def _feature_sweep(config: RenderBenchConfig, log: Callable[[str], None]) -> lis
 
 def _centre_tiles(size: int, share: float) -> torch.Tensor:
     """[size, size] bool: every pixel of a centred square of about ``share`` of the image's tiles (at least one)."""
-    tiles = -(-size // TILE_SIZE)
+    tiles, _ = tile_grid(size, size, TILE_SIZE)
     side = max(1, round((share * tiles * tiles) ** 0.5))
     lo = (tiles - side) // 2 * TILE_SIZE
     pixels = torch.zeros(size, size, dtype=torch.bool)
