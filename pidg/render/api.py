@@ -14,7 +14,7 @@ from torch import Tensor
 from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
-from pidg.render.projection import TILE_SIZE, Projection, project_gaussians, tiles_touched
+from pidg.render.projection import TILE_SIZE, Projection, project_gaussians, tile_rows_touched, tiles_touched
 from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.footprint import footprints_touching
 from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu, gaussians_reaching_cpu
@@ -97,11 +97,10 @@ def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cp
     return backend  # type: ignore[return-value]
 
 
-def feature_tile_channels(feature_pixels: Tensor, always: int, n_features: int, tile_size: int = TILE_SIZE) -> Tensor:
-    """[tiles_y * tiles_x] (row-major) channels each tile composites: ``always + n_features`` in the tiles that hold
-    a pixel of ``feature_pixels`` [H, W] (bool), ``always`` in the others."""
-    touched = tiles_touched(feature_pixels, tile_size)
-    return torch.where(touched, always + n_features, always).reshape(-1)
+def feature_row_channels(feature_pixels: Tensor, always: int, n_features: int, tile_size: int = TILE_SIZE) -> Tensor:
+    """[H, tiles_x] channels each tile row (a tile's pixels on one image row) composites: ``always + n_features``
+    in the tile rows that hold a pixel of ``feature_pixels`` [H, W] (bool), ``always`` in the others."""
+    return torch.where(tile_rows_touched(feature_pixels, tile_size), always + n_features, always)
 
 
 def project(
@@ -159,8 +158,9 @@ def rasterize(
         backend: "cpu" (numba kernels: projection and colour, then compositing; float32 inputs, float64 ones take
             the torch projection), "torch" (reference), "gsplat" (CUDA), or "auto".
         feature_pixels: optional [H, W] bool, the pixels whose ``features`` the caller reads: the features are
-            composited only in the 16x16 tiles that hold one of them and are 0 elsewhere, so a loss on a few pixels
-            pays for their tiles only (on the cpu backend; the others compute all and zero the rest).
+            composited only in the tile rows (a 16x16 tile's pixels on one image row, the compositor's unit of
+            work) that hold one of them and are 0 elsewhere, so a loss on a few pixels pays for their rows only (on
+            the cpu backend; the others compute all and zero the rest).
     """
     if (scales is None) == (log_scales is None):
         raise ValueError("rasterize: pass exactly one of scales= or log_scales=")
@@ -186,7 +186,7 @@ def rasterize(
             out = rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
             if feature_pixels is not None and out.features is not None:
                 n_feat = out.features.shape[-1]
-                kept = channels_below(feature_tile_channels(feature_pixels, 0, n_feat, tile_size), n_feat, camera.width, camera.height, tile_size)
+                kept = channels_below(feature_row_channels(feature_pixels, 0, n_feat, tile_size), n_feat, camera.width, camera.height, tile_size)
                 out = dataclasses.replace(out, features=out.features * kept.to(out.features.dtype))
             return out
         proj = project_gaussians(means, quats, lin_scales, opacities, camera)
@@ -195,14 +195,14 @@ def rasterize(
     n_feat = 0 if features is None else features.shape[1]
     channels = [rgb_per_gaussian, proj.depths.unsqueeze(-1)] + ([features] if features is not None else [])
     per_gaussian = torch.cat(channels, dim=-1)  # [N, 3 + 1 + C]: colour, depth and features in one pass
-    tile_channels = None
+    row_channels = None
     if feature_pixels is not None and n_feat:
-        tile_channels = feature_tile_channels(feature_pixels, 4, n_feat, tile_size)  # colour and depth everywhere
+        row_channels = feature_row_channels(feature_pixels, 4, n_feat, tile_size)  # colour and depth everywhere
     composite = composite_cpu if which == "cpu" else composite_reference
     # colour and depth into the image, the features into an image of their own (``extra``)
     image, alpha, extra = composite(
         proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size,
-        tile_channels, image_channels=4,
+        row_channels, image_channels=4,
     )
     if which == "cpu" and image.dtype == torch.float32 and not bg.requires_grad:
         rgb, depth = finish_image_cpu(image, alpha, bg)  # the lines below as one numba pass

@@ -179,6 +179,15 @@ def image_channel_count(image_channels: int | None, n_channels: int) -> int:
     return count
 
 
+def tile_rows_touched(pixels: Tensor, tile_size: int) -> Tensor:
+    """[H, tiles_x] bool: the tile rows (a tile's pixels on one image row, up to ``tile_size`` of them: the
+    compositor's unit of work) that hold a True pixel of ``pixels`` [H, W] (bool)."""
+    height, width = pixels.shape
+    tiles_x, _ = tile_grid(width, height, tile_size)
+    padded = F.pad(pixels.to(torch.bool), (0, tiles_x * tile_size - width))
+    return padded.reshape(height, tiles_x, tile_size).any(dim=2)
+
+
 def tiles_touched(pixels: Tensor, tile_size: int) -> Tensor:
     """[tiles_y, tiles_x] bool: the rasterizer's tiles that hold a True pixel of ``pixels`` [H, W] (bool)."""
     height, width = pixels.shape

@@ -24,7 +24,9 @@ Pipeline, with no Python loop over Gaussians:
      own, so that a few feature tiles do not widen every pixel's row of the image: strided into one
      [H, W, 4 + 8] array, the image's and its gradient's cache lines tripled (~5 ms of a 400x400 step). Likewise
      the tiles read the two groups' per-Gaussian values from two arrays, and the extra channels' gradients are kept
-     for their own tiles only and added per Gaussian in one serial pass over those tiles.
+     for their own tiles only and added per Gaussian in one serial pass over those tiles. Each tile row composites
+     its own number of channels (``row_channels``): a loss that reads its features at a few pixels pays for the
+     extra channels on those pixels' rows only.
   4. ``finish_image_cpu``: the composited colour and depth become rgb over the background and depth, each a
      contiguous array, in one pass; its backward assembles the image's gradient in one pass too.
   5. ``gaussians_reaching_cpu`` (not part of a render): the forward pass's hit and stop rules on a pixel mask only,
@@ -286,6 +288,15 @@ def _cull_block(table, k0, k_limit, pyc, n_lanes, misses, hits):  # pragma: no c
 
 
 @njit(cache=True, inline="always")
+def _tile_dim(row_dims, tx, y_lo, y_hi):  # pragma: no cover - compiled
+    """The most channels any of tile column ``tx``'s rows y_lo .. y_hi - 1 composites: the width of its tables."""
+    dim = 0
+    for py in range(y_lo, y_hi):
+        dim = max(dim, row_dims[py, tx])
+    return dim
+
+
+@njit(cache=True, inline="always")
 def _tile_box(tile, tiles_x, tile_size, width, height):  # pragma: no cover - compiled
     """Tile ``tile``'s pixels (row-major tiles): x_lo, y_lo, x_hi, y_hi (exclusive) and its row's lane count."""
     ty = tile // tiles_x
@@ -322,15 +333,16 @@ def _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight):  # pragma: no c
 
 @njit(parallel=True, cache=True, nogil=True)
 def _forward_tiles(
-    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x, out_img,
+    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, row_dims, width, height, tile_size, tiles_x, out_img,
     out_extra, out_trans, out_end
 ):  # pragma: no cover - compiled
     n_tiles = tile_offsets.shape[0] - 1
     n_image = out_img.shape[2]  # channels 0 .. n_image - 1 go to out_img, the rest to out_extra
     for tile in prange(n_tiles):
-        dim = tile_dims[tile]  # channels composited in this tile (at least n_image); out_extra holds 0 in the others
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
+        tx = tile % tiles_x
+        dim = _tile_dim(row_dims, tx, y_lo, y_hi)  # its rows' most (at least n_image); out_extra holds 0 past a row's
         n_k = end - start
         table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
         tfeat = np.empty((n_k, dim), dtype=np.float32)
@@ -351,11 +363,12 @@ def _forward_tiles(
         feature_lanes = max(n_lanes, LANES)
         for py in range(y_lo, y_hi):
             pyc = f32(py) + f32(0.5)
+            row_dim = row_dims[py, tx]  # this row's channels
             for lane in range(LANES):
                 trans[lane] = 1.0
                 stop[lane] = 0.0
                 live[lane] = f32(1.0) if lane < n_lanes else f32(0.0)
-            for d in range(dim):  # (a slice assignment here made the lane loops 2.5x slower)
+            for d in range(row_dim):  # (a slice assignment here made the lane loops 2.5x slower)
                 for lane in range(LANES):
                     acc[d, lane] = 0.0
             for k0 in range(0, n_k, CULL_BLOCK):
@@ -366,7 +379,7 @@ def _forward_tiles(
                 for i in range(n_hits):
                     k = hits[i]
                     _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight)
-                    for d in range(dim):
+                    for d in range(row_dim):
                         f = tfeat[k, d]
                         for lane in range(feature_lanes):
                             acc[d, lane] += weight[lane] * f
@@ -380,7 +393,7 @@ def _forward_tiles(
                 px = x_lo + lane
                 for d in range(n_image):
                     out_img[py, px, d] = acc[d, lane]
-                for d in range(n_image, dim):
+                for d in range(n_image, row_dim):
                     out_extra[py, px, d - n_image] = acc[d, lane]
                 out_trans[py, px] = trans[lane]
                 out_end[py, px] = np.int32(stop[lane])
@@ -455,7 +468,7 @@ def _any_per_gaussian(reached, gauss_offsets, out):  # pragma: no cover - compil
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
-    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, width, height, tile_size, tiles_x,
+    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, row_dims, width, height, tile_size, tiles_x,
     out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, extra_rows, isect_extra,
 ):  # pragma: no cover - compiled
     """Per (tile, Gaussian) gradients, back to front.
@@ -470,11 +483,12 @@ def _backward_tiles(
     n_tiles = tile_offsets.shape[0] - 1
     n_image = grad_img.shape[2]  # channels from n_image on: their gradient is grad_extra's
     for tile in prange(n_tiles):
-        dim = tile_dims[tile]  # the forward's channels: the others are constant 0 here, with no gradient
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         if end == start:
             continue
         x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
+        tx = tile % tiles_x
+        dim = _tile_dim(row_dims, tx, y_lo, y_hi)  # the forward's channels: past a row's, constant 0 with no gradient
         feature_lanes = max(n_lanes, LANES)  # 16, as a value the compiler cannot unroll (see _forward_tiles)
         n_k = end - start
         table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
@@ -507,6 +521,7 @@ def _backward_tiles(
             xs[lane] = f32(lane) + f32(0.5)
         for py in range(y_lo, y_hi):
             pyc = f32(py) + f32(0.5)
+            row_dim = row_dims[py, tx]
             k_end = 0
             for lane in range(n_lanes):
                 px = x_lo + lane
@@ -515,7 +530,7 @@ def _backward_tiles(
                 g_alpha_out[lane] = grad_alpha[py, px]
                 for d in range(n_image):
                     g_out[d, lane] = grad_img[py, px, d]
-                for d in range(n_image, dim):
+                for d in range(n_image, row_dim):
                     g_out[d, lane] = grad_extra[py, px, d - n_image]
                 k_end = max(k_end, out_end[py, px])
             for lane in range(n_lanes, LANES):
@@ -553,7 +568,7 @@ def _backward_tiles(
                         g_a[lane] = g_alpha_out[lane] * trans_final[lane] * inv_l
                     for lane in range(LANES):
                         g_feat[lane] = 0.0
-                    for d in range(dim):
+                    for d in range(row_dim):
                         f = tfeat[k, d]
                         s_feat = f32(0.0)
                         for lane in range(feature_lanes):
@@ -614,6 +629,15 @@ def _reduce_per_gaussian(isect_grads, gauss_offsets, out):  # pragma: no cover -
                 out[g, j] += isect_grads[i, j]
 
 
+def _tile_maxima(row_dims: np.ndarray, tile_size: int, tiles_y: int) -> np.ndarray:
+    """[tiles_y * tiles_x] (row-major tiles): the most channels a row of each tile composites, from ``row_dims``
+    [H, tiles_x] (``_tile_dim`` per tile)."""
+    height, tiles_x = row_dims.shape
+    padded = np.zeros((tiles_y * tile_size, tiles_x), dtype=row_dims.dtype)
+    padded[:height] = row_dims
+    return padded.reshape(tiles_y, tile_size, tiles_x).max(axis=1).reshape(-1)
+
+
 def _split_columns(features: Tensor, count: int) -> tuple[np.ndarray, np.ndarray]:
     """Per-Gaussian features [N, D] as two contiguous float32 arrays, the first ``count`` columns and the others:
     tiles that composite the first ones only read a narrow array, which stays in cache where [N, D] rows would not."""
@@ -623,23 +647,23 @@ def _split_columns(features: Tensor, count: int) -> tuple[np.ndarray, np.ndarray
 
 class _CompositeCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int, tile_dims: np.ndarray, image_channels: int):  # type: ignore[override]
+    def forward(ctx, means2d, conics, opacities, features, bins: TileBins, width: int, height: int, row_dims: np.ndarray, image_channels: int):  # type: ignore[override]
         if bins.tile_size > LANES:
             raise ValueError(f"the CPU kernel supports tiles up to {LANES} pixels wide, got {bins.tile_size}")
         ctx.set_materialize_grads(False)  # an output the loss does not read sends None, not a tensor of zeros
         dim = features.shape[1]
         img = np.empty((height, width, image_channels), dtype=np.float32)
         # the extra channels are written where a tile composites them; fresh zeroed pages elsewhere
-        everywhere = bool((tile_dims >= dim).all())
+        everywhere = bool((row_dims >= dim).all())
         extra = (np.empty if everywhere else np.zeros)((height, width, dim - image_channels), dtype=np.float32)
         trans = np.empty((height, width), dtype=np.float32)
         end = np.empty((height, width), dtype=np.int32)
         feats, extra_feats = _split_columns(features, image_channels)
-        args = (float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets, bins.isect_ids, tile_dims)
+        args = (float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets, bins.isect_ids, row_dims)
         with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
             _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, extra, trans, end)
         ctx.save_for_backward(means2d, conics, opacities, features)
-        ctx.bins, ctx.trans, ctx.end, ctx.size, ctx.tile_dims = bins, trans, end, (width, height, image_channels), tile_dims
+        ctx.bins, ctx.trans, ctx.end, ctx.size, ctx.row_dims = bins, trans, end, (width, height, image_channels), row_dims
         dtype = features.dtype
         return torch.from_numpy(img).to(dtype), torch.from_numpy(1.0 - trans).to(dtype), torch.from_numpy(extra).to(dtype)
 
@@ -649,14 +673,14 @@ class _CompositeCPU(torch.autograd.Function):
         bins: TileBins = ctx.bins
         width, height, image_channels = ctx.size
         n, dim = features.shape
-        tile_dims = ctx.tile_dims
+        row_dims = ctx.row_dims
         if grad_extra is None:  # the extra channels add nothing to the loss: their tiles' backward skips them
-            tile_dims, grad_extra = np.minimum(tile_dims, image_channels), torch.zeros(0, 0, 0)
+            row_dims, grad_extra = np.minimum(row_dims, image_channels), torch.zeros(0, 0, 0)
         img_grad = np.zeros((height, width, image_channels), np.float32) if grad_img is None else float32_array(grad_img)
         alpha_grad = np.zeros((height, width), np.float32) if grad_alpha is None else float32_array(grad_alpha)
         # per intersection, rows no pixel reached are 0; the extra channels' apart, for the tiles that composite them
         isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + image_channels), dtype=np.float32)
-        extra_tiles = tile_dims > image_channels
+        extra_tiles = _tile_maxima(row_dims, bins.tile_size, bins.tiles_y) > image_channels
         lengths = np.diff(bins.tile_offsets) * extra_tiles
         extra_rows = np.where(extra_tiles, np.cumsum(lengths) - lengths, -1)
         isect_extra = np.zeros((int(lengths.sum()), dim - image_channels), dtype=np.float32)
@@ -664,7 +688,7 @@ class _CompositeCPU(torch.autograd.Function):
         with numba.parallel_chunksize(1):
             _backward_tiles(
                 float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
-                bins.isect_ids, tile_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
+                bins.isect_ids, row_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
                 float32_array(grad_extra), alpha_grad, bins.slot_of_isect, isect_grads, extra_rows, isect_extra,
             )
         per_gauss = np.empty((n, _N_PARAMS + image_channels), dtype=np.float64)
@@ -751,11 +775,12 @@ def composite_cpu(
     width: int,
     height: int,
     tile_size: int = TILE_SIZE,
-    tile_channels: Tensor | None = None,
+    row_channels: Tensor | None = None,
     image_channels: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Same contract as ``composite_reference``: image [H, W, A], alpha [H, W] and extra [H, W, D - A],
-    differentiable; a tile composites only its ``tile_channels`` leading channels (and pays for those only)."""
+    differentiable; a tile row composites only its ``row_channels`` [H, tiles_x] leading channels (and pays for
+    those only)."""
     bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
     longest = int(np.diff(bins.tile_offsets).max()) if bins.tile_offsets.shape[0] > 1 else 0
     if longest >= _MAX_TILE_LIST:
@@ -763,11 +788,13 @@ def composite_cpu(
                          f"in float32, exact below {_MAX_TILE_LIST}")
     dim = features.shape[1]
     image_channels = image_channel_count(image_channels, dim)
-    if tile_channels is None:
-        tile_dims = np.full(bins.tiles_x * bins.tiles_y, dim, dtype=np.int64)
-    else:  # every tile composites the image's channels: the kernel writes those everywhere
-        tile_dims = np.clip(tile_channels.detach().cpu().numpy().astype(np.int64).reshape(-1), image_channels, dim)
-    return _CompositeCPU.apply(means2d, conics, opacities, features, bins, width, height, tile_dims, image_channels)
+    if row_channels is None:
+        row_dims = np.full((height, bins.tiles_x), dim, dtype=np.int64)
+    else:  # every row composites the image's channels: the kernel writes those everywhere
+        if tuple(row_channels.shape) != (height, bins.tiles_x):
+            raise ValueError(f"composite_cpu: row_channels must be [H, tiles_x] = [{height}, {bins.tiles_x}], got {list(row_channels.shape)}")
+        row_dims = np.clip(row_channels.detach().cpu().numpy().astype(np.int64), image_channels, dim)
+    return _CompositeCPU.apply(means2d, conics, opacities, features, bins, width, height, row_dims, image_channels)
 
 
 @torch.no_grad()

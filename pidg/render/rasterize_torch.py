@@ -24,22 +24,22 @@ def composite_reference(
     width: int,
     height: int,
     tile_size: int = TILE_SIZE,
-    tile_channels: Tensor | None = None,
+    row_channels: Tensor | None = None,
     image_channels: int | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Alpha-composite per-Gaussian features [N, D]: returns the image [H, W, A] of the leading ``image_channels``
     A (None: all D), alpha [H, W], and the other channels' image ``extra`` [H, W, D - A].
 
     Gaussians with ``radii == 0`` are ignored. ``radii`` must bound every pixel where alpha >= 1/255 (as
-    ``project_gaussians`` guarantees), otherwise contributions would be cut at tile borders. ``tile_channels``
-    [tiles_y * tiles_x] (row-major tiles): channels from that count on (never fewer than A) are 0 in that tile
-    (see ``rasterize``).
+    ``project_gaussians`` guarantees), otherwise contributions would be cut at tile borders. ``row_channels``
+    [H, tiles_x]: each tile row (a tile's pixels on one image row) composites that many leading channels (never
+    fewer than A); the others are 0 there (see ``rasterize``'s ``feature_pixels``).
     """
     dim = features.shape[1]
     image_channels = image_channel_count(image_channels, dim)
     image, alpha = _composite_all(means2d, conics, opacities, features, depths, radii, width, height, tile_size)
-    if tile_channels is not None:
-        kept = channels_below(tile_channels.clamp_min(image_channels), dim, width, height, tile_size)
+    if row_channels is not None:
+        kept = channels_below(row_channels.clamp_min(image_channels), dim, width, height, tile_size)
         image = image * kept.to(image.dtype)
     colour, extra = image.split([image_channels, dim - image_channels], dim=-1)
     return colour, alpha, extra
@@ -98,10 +98,11 @@ def _composite_all(
     return torch.cat(rows_out, dim=0), torch.cat(alpha_rows, dim=0)
 
 
-def channels_below(tile_channels: Tensor, n_channels: int, width: int, height: int, tile_size: int = TILE_SIZE) -> Tensor:
-    """[H, W, n_channels] bool: True for the channels a pixel's tile composites (``tile_channels`` [tiles_y *
-    tiles_x], row-major)."""
-    tiles_x, tiles_y = tile_grid(width, height, tile_size)
-    per_pixel = tile_channels.reshape(tiles_y, tiles_x).repeat_interleave(tile_size, 0).repeat_interleave(tile_size, 1)
-    per_pixel = per_pixel[:height, :width]
+def channels_below(row_channels: Tensor, n_channels: int, width: int, height: int, tile_size: int = TILE_SIZE) -> Tensor:
+    """[H, W, n_channels] bool: True for the channels a pixel's tile row composites (``row_channels`` [H,
+    tiles_x], see ``composite_reference``)."""
+    tiles_x, _ = tile_grid(width, height, tile_size)
+    if tuple(row_channels.shape) != (height, tiles_x):
+        raise ValueError(f"row_channels must be [H, tiles_x] = [{height}, {tiles_x}], got {list(row_channels.shape)}")
+    per_pixel = row_channels.repeat_interleave(tile_size, 1)[:, :width]
     return torch.arange(n_channels, device=per_pixel.device) < per_pixel[..., None]

@@ -210,16 +210,17 @@ def test_results_do_not_depend_on_tile_size():
 
 
 @pytest.mark.parametrize("backend", ["cpu", "torch"])
-def test_feature_pixels_composite_features_in_their_tiles_only(backend):
-    """``feature_pixels``: features are those of the full render in the 16x16 tiles holding a chosen pixel and 0
-    elsewhere; colour, alpha and depth are untouched; a loss reading the features at the chosen pixels gets the
-    same gradients, bit for bit on the kernel (its zeroed channels add exact zeros)."""
+def test_feature_pixels_composite_features_in_their_tile_rows_only(backend):
+    """``feature_pixels``: features are those of the full render in the tile rows (a 16x16 tile's pixels on one
+    image row) holding a chosen pixel and 0 elsewhere; colour, alpha and depth are untouched; a loss reading the
+    features at the chosen pixels gets the same gradients, bit for bit on the kernel (its zeroed channels add exact
+    zeros)."""
     camera = CAMERAS["wide"]()  # 70 x 38: partial tiles at the right and bottom edges
     scene = hard_scene(camera, 150, torch.float32, n_features=5, seed=3)
     pixels = torch.zeros(camera.height, camera.width, dtype=torch.bool)
-    pixels[3, 5] = pixels[20:22, 66:69] = True  # tiles (0, 0), (1, 4); (1, 4) is the partial corner tile
-    tiles = torch.zeros_like(pixels)
-    tiles[0:16, 0:16] = tiles[16:32, 64:70] = True
+    pixels[3, 5] = pixels[20:22, 66:69] = True  # in tiles (0, 0), (1, 4); (1, 4) is the partial corner tile
+    tiles = torch.zeros_like(pixels)  # their tile rows
+    tiles[3, 0:16] = tiles[20:22, 64:70] = True
     gen = torch.Generator().manual_seed(2)
     weights = [torch.randn(camera.height, camera.width, k, generator=gen) for k in (3, 5)]
     runs = {}
@@ -257,8 +258,8 @@ def test_the_image_and_extra_channels_of_the_kernel_are_the_references(restricte
         proj = project_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, camera)
     per_gaussian = torch.cat([scene.colors, proj.depths[:, None], scene.features], dim=-1)  # 3 + 1 + 5 channels
     tiles = None
-    if restricted:  # five tiles composite all 9 channels, the rest only the image's 4 (a count below 4 means 4)
-        tiles = torch.tensor([9, 4, 2, 9, 4, 4, 4, 9, 9, 4, 9, 0, 4, 4, 4])
+    if restricted:  # a third of the tile rows composite all 9 channels, the rest the image's 4 (fewer means 4)
+        tiles = torch.tensor([9, 4, 2, 0, 9, 4])[torch.randint(6, (38, 5), generator=torch.Generator().manual_seed(6))]
     gen = torch.Generator().manual_seed(4)
     weights = [torch.randn(camera.height, camera.width, *k, generator=gen) for k in ((4,), (), (5,))]
     for read in [(True, True, True), (True, True, False), (False, False, True), (True, False, False)]:
@@ -479,3 +480,15 @@ def test_tiles_touched_are_the_tiles_holding_a_pixel(tile_size):
     whole[1:, 1:] = torch.rand(48, 80, generator=gen) > 0.995
     assert torch.equal(tiles_touched(whole[1:, 1:], tile_size), tiles_touched(whole[1:, 1:].clone(), tile_size))
     assert torch.equal(tiles_touched(whole[1:, 1:], 16), whole[1:, 1:].reshape(3, 16, 5, 16).any(3).any(1))
+
+
+@pytest.mark.parametrize("tile_size", [16, 5])
+def test_tile_rows_touched_are_the_tile_rows_holding_a_pixel(tile_size):
+    """Against a loop over each image row's tiles, on an image whose last tile column is partial."""
+    from pidg.render.projection import tile_rows_touched
+
+    pixels = torch.rand(37, 50, generator=torch.Generator().manual_seed(5)) > 0.98
+    pixels[36, 49] = True  # the partial last tile's row
+    expected = torch.tensor([[bool(pixels[y, x:x + tile_size].any()) for x in range(0, 50, tile_size)] for y in range(37)])
+    assert 0 < expected.sum() < expected.numel()
+    assert torch.equal(tile_rows_touched(pixels, tile_size), expected)
