@@ -653,7 +653,7 @@ class _CompositeCPU(torch.autograd.Function):
         ctx.set_materialize_grads(False)  # an output the loss does not read sends None, not a tensor of zeros
         dim = features.shape[1]
         img = np.empty((height, width, image_channels), dtype=np.float32)
-        # the extra channels are written where a tile composites them; fresh zeroed pages elsewhere
+        # the extra channels are written where a tile row composites them; fresh zeroed pages elsewhere
         everywhere = bool((row_dims >= dim).all())
         extra = (np.empty if everywhere else np.zeros)((height, width, dim - image_channels), dtype=np.float32)
         trans = np.empty((height, width), dtype=np.float32)
