@@ -19,7 +19,8 @@ from torch import Tensor
 from pidg.flow.config import FlowConfig
 from pidg.flow.decomposition import FlowTarget, depth_change_target, dilate_mask, motion_flow_target
 from pidg.flow.preprocess import FlowPair
-from pidg.render.api import TILE_SIZE, RenderOutput, tiles_touched
+from pidg.render.api import TILE_SIZE, RenderOutput
+from pidg.render.projection import tiles_touched
 from pidg.render.output import OPAQUE_ALPHA
 
 

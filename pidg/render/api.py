@@ -14,7 +14,7 @@ from torch import Tensor
 from pidg.errors import NonFiniteError
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
-from pidg.render.projection import TILE_SIZE, Projection, project_gaussians, tile_rows_touched, tiles_touched
+from pidg.render.projection import TILE_SIZE, Projection, project_gaussians, tile_rows_touched
 from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.footprint import footprints_touching
 from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu, gaussians_reaching_cpu

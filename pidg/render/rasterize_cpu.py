@@ -288,15 +288,6 @@ def _cull_block(table, k0, k_limit, pyc, n_lanes, misses, hits):  # pragma: no c
 
 
 @njit(cache=True, inline="always")
-def _tile_dim(row_dims, tx, y_lo, y_hi):  # pragma: no cover - compiled
-    """The most channels any of tile column ``tx``'s rows y_lo .. y_hi - 1 composites: the width of its tables."""
-    dim = 0
-    for py in range(y_lo, y_hi):
-        dim = max(dim, row_dims[py, tx])
-    return dim
-
-
-@njit(cache=True, inline="always")
 def _tile_box(tile, tiles_x, tile_size, width, height):  # pragma: no cover - compiled
     """Tile ``tile``'s pixels (row-major tiles): x_lo, y_lo, x_hi, y_hi (exclusive) and its row's lane count."""
     ty = tile // tiles_x
@@ -333,8 +324,8 @@ def _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight):  # pragma: no c
 
 @njit(parallel=True, cache=True, nogil=True)
 def _forward_tiles(
-    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, row_dims, width, height, tile_size, tiles_x, out_img,
-    out_extra, out_trans, out_end
+    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, row_dims, width, height, tile_size, tiles_x,
+    out_img, out_extra, out_trans, out_end
 ):  # pragma: no cover - compiled
     n_tiles = tile_offsets.shape[0] - 1
     n_image = out_img.shape[2]  # channels 0 .. n_image - 1 go to out_img, the rest to out_extra
@@ -342,7 +333,7 @@ def _forward_tiles(
         start, end = tile_offsets[tile], tile_offsets[tile + 1]
         x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
         tx = tile % tiles_x
-        dim = _tile_dim(row_dims, tx, y_lo, y_hi)  # its rows' most (at least n_image); out_extra holds 0 past a row's
+        dim = tile_dims[tile]  # its rows' most (at least n_image): the width of its tables; out_extra holds 0 past a row's
         n_k = end - start
         table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
         tfeat = np.empty((n_k, dim), dtype=np.float32)
@@ -468,8 +459,8 @@ def _any_per_gaussian(reached, gauss_offsets, out):  # pragma: no cover - compil
 
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
-    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, row_dims, width, height, tile_size, tiles_x,
-    out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, extra_rows, isect_extra,
+    means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, row_dims, width, height, tile_size,
+    tiles_x, out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, extra_rows, isect_extra,
 ):  # pragma: no cover - compiled
     """Per (tile, Gaussian) gradients, back to front.
 
@@ -488,7 +479,7 @@ def _backward_tiles(
             continue
         x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
         tx = tile % tiles_x
-        dim = _tile_dim(row_dims, tx, y_lo, y_hi)  # the forward's channels: past a row's, constant 0 with no gradient
+        dim = tile_dims[tile]  # the forward's channels: past a row's, constant 0 with no gradient
         feature_lanes = max(n_lanes, LANES)  # 16, as a value the compiler cannot unroll (see _forward_tiles)
         n_k = end - start
         table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
@@ -631,7 +622,7 @@ def _reduce_per_gaussian(isect_grads, gauss_offsets, out):  # pragma: no cover -
 
 def _tile_maxima(row_dims: np.ndarray, tile_size: int, tiles_y: int) -> np.ndarray:
     """[tiles_y * tiles_x] (row-major tiles): the most channels a row of each tile composites, from ``row_dims``
-    [H, tiles_x] (``_tile_dim`` per tile)."""
+    [H, tiles_x]: the width of the tile's tables in the kernels."""
     height, tiles_x = row_dims.shape
     padded = np.zeros((tiles_y * tile_size, tiles_x), dtype=row_dims.dtype)
     padded[:height] = row_dims
@@ -659,7 +650,9 @@ class _CompositeCPU(torch.autograd.Function):
         trans = np.empty((height, width), dtype=np.float32)
         end = np.empty((height, width), dtype=np.int32)
         feats, extra_feats = _split_columns(features, image_channels)
-        args = (float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets, bins.isect_ids, row_dims)
+        tile_dims = _tile_maxima(row_dims, bins.tile_size, bins.tiles_y)
+        args = (float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
+                bins.isect_ids, tile_dims, row_dims)
         with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
             _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, extra, trans, end)
         ctx.save_for_backward(means2d, conics, opacities, features)
@@ -680,7 +673,8 @@ class _CompositeCPU(torch.autograd.Function):
         alpha_grad = np.zeros((height, width), np.float32) if grad_alpha is None else float32_array(grad_alpha)
         # per intersection, rows no pixel reached are 0; the extra channels' apart, for the tiles that composite them
         isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + image_channels), dtype=np.float32)
-        extra_tiles = _tile_maxima(row_dims, bins.tile_size, bins.tiles_y) > image_channels
+        tile_dims = _tile_maxima(row_dims, bins.tile_size, bins.tiles_y)
+        extra_tiles = tile_dims > image_channels
         lengths = np.diff(bins.tile_offsets) * extra_tiles
         extra_rows = np.where(extra_tiles, np.cumsum(lengths) - lengths, -1)
         isect_extra = np.zeros((int(lengths.sum()), dim - image_channels), dtype=np.float32)
@@ -688,7 +682,7 @@ class _CompositeCPU(torch.autograd.Function):
         with numba.parallel_chunksize(1):
             _backward_tiles(
                 float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
-                bins.isect_ids, row_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
+                bins.isect_ids, tile_dims, row_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
                 float32_array(grad_extra), alpha_grad, bins.slot_of_isect, isect_grads, extra_rows, isect_extra,
             )
         per_gauss = np.empty((n, _N_PARAMS + image_channels), dtype=np.float64)

@@ -465,7 +465,7 @@ def test_finish_image_is_the_torch_arithmetic():
 def test_tiles_touched_are_the_tiles_holding_a_pixel(tile_size):
     """Against a loop over the tiles, on an image whose last tile row and column are partial; sizes a multiple of 8
     read a tile row as int64 words, the others as bools."""
-    from pidg.render.api import tiles_touched
+    from pidg.render.projection import tiles_touched
 
     gen = torch.Generator().manual_seed(3)
     pixels = torch.rand(37, 50, generator=gen) > 0.995
