@@ -18,10 +18,10 @@ from pidg.data.scene import Frame, SceneData
 from pidg.device import Device, describe, rasterizer_for, resolve_device
 from pidg.evaluation.evaluate import evaluate_model
 from pidg.evaluation.future import evaluate_future
-from pidg.evaluation.motion import MotionEvaluation, evaluate_flow_target, evaluate_motion
+from pidg.evaluation.motion import FrameFlows, MotionEvaluation, evaluate_flow_target, evaluate_motion
 from pidg.evaluation.images import colorize_scalar, save_png
 from pidg.evaluation.video import write_video
-from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images
+from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images, truth_flow_comparison
 from pidg.flow import FlowCache, FlowConfig, open_flow_cache
 from pidg.metrics import NetName, lpips_weights_available
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -93,14 +93,20 @@ def evaluate_motion_and_save(
     dataset folder; :mod:`pidg.evaluation.motion`), written to RUN/eval_SPLIT/motion_gt.json, its per-frame errors
     drawn over time in motion_gt_per_frame.svg and its 3D tracking in motion_gt_tracking.svg. With ``flow`` (the
     run's flow settings) the training pairs' flow target is scored too, from ``flow_cache`` or else the scene's
-    optical-flow cache (computed where missing)."""
+    optical-flow cache (computed where missing). Each scored view's flows beside the truth go to
+    RUN/eval_SPLIT/motion_flow/VIEW.png (:func:`pidg.evaluation.visualize.truth_flow_comparison`)."""
     truth = truth if truth is not None else read_motion_gt(scene.root)
     integration = flow.velocity_integration if flow is not None else "euler"
-    evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius, velocity_integration=integration)
+    out_dir = Path(run_dir) / f"eval_{split}"
+
+    def save_picture(flows: FrameFlows) -> None:
+        save_png(truth_flow_comparison(flows)[0], out_dir / "motion_flow" / f"{flows.frame.name.replace('/', '_')}.png")
+
+    evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius, velocity_integration=integration,
+                                 on_frame=save_picture)
     if flow is not None:
         cache = flow_cache or open_flow_cache(scene, flow, Path(run_dir) / "flow_cache", progress=False)
         evaluation.target = evaluate_flow_target(model, cache, flow, truth)
-    out_dir = Path(run_dir) / f"eval_{split}"
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "motion_gt.json").write_text(json.dumps(evaluation.to_dict(), indent=2))
     (out_dir / "motion_gt_per_frame.svg").write_text(evaluation.per_frame_chart())

@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -403,17 +403,33 @@ def _velocity_at(model: DynamicGaussians, t: float, points: Tensor, radius: floa
 FLOW_KEYS = {"motion": "motion_flow_epe", "velocity": "velocity_flow_epe", "gaussian": "gaussian_flow_epe", "zero": "zero_motion_epe"}
 
 
-def _frame_flow_sums(
+@dataclass
+class FrameFlows:
+    """One scored frame's flows at the run's image size, for pictures: the true motion flow [H, W, 2] (pixels; NaN
+    where the truth has no surface), the model's flows, and the scored pixels [H, W] (bool) the errors average over."""
+
+    frame: Frame
+    truth: Tensor
+    model: ModelFlows
+    scored: Tensor
+
+
+def _frame_flows(
     model: DynamicGaussians, frame: Frame, flow: np.ndarray, dynamic: np.ndarray, t1: float, integration: VelocityIntegration
-) -> tuple[dict[str, float | None], int]:
-    """Sums of |flow - flow_gt| over one frame's scored pixels per flow (None: the model has no such flow), and
-    their number."""
+) -> FrameFlows:
+    """The truth and the model's flows of one frame, and its scored pixels."""
     flow_gt, dyn = resize_flow(torch.from_numpy(flow), torch.from_numpy(dynamic), (frame.width, frame.height))
     flow_gt, dyn = flow_gt.to(model.device), dyn.to(model.device)
     flows = model_flows(model, frame.camera, frame.time, t1, integration)
-    mask = dyn & torch.isfinite(flow_gt).all(-1) & (flows.alpha > MODEL_MIN_ALPHA)
-    sums = {"motion": _epe_sum(flows.motion, flow_gt, mask), "velocity": _epe_sum(flows.velocity, flow_gt, mask),
-            "gaussian": _epe_sum(flows.gaussian, flow_gt, mask), "zero": float(flow_gt.norm(dim=-1)[mask].double().sum())}
+    return FrameFlows(frame, flow_gt, flows, dyn & torch.isfinite(flow_gt).all(-1) & (flows.alpha > MODEL_MIN_ALPHA))
+
+
+def _frame_flow_sums(flows: FrameFlows) -> tuple[dict[str, float | None], int]:
+    """Sums of |flow - flow_gt| over one frame's scored pixels per flow (None: the model has no such flow), and
+    their number."""
+    flow_gt, mask, m = flows.truth, flows.scored, flows.model
+    sums = {"motion": _epe_sum(m.motion, flow_gt, mask), "velocity": _epe_sum(m.velocity, flow_gt, mask),
+            "gaussian": _epe_sum(m.gaussian, flow_gt, mask), "zero": float(flow_gt.norm(dim=-1)[mask].double().sum())}
     return sums, int(mask.sum())
 
 
@@ -427,6 +443,7 @@ def evaluate_motion(
     fd_step: float | None = None,
     speed_floor: float | None = None,
     velocity_integration: VelocityIntegration = "euler",
+    on_frame: Callable[[FrameFlows], None] | None = None,
 ) -> MotionEvaluation:
     """Score the model's motion on ``frames`` against ``truth`` (see the module docstring for every definition).
 
@@ -434,7 +451,8 @@ def evaluate_motion(
     the deformation's central-difference step in dataset time (default half the ground-truth frame interval);
     ``speed_floor``: smallest true speed counted in the relative error, world units per unit of dataset time
     (default :data:`SPEED_FLOOR_FRACTION` of the mean true speed at the scored times); ``velocity_integration``: the
-    rule the velocity flow carries particles by, the run's ``FlowConfig.velocity_integration``."""
+    rule the velocity flow carries particles by, the run's ``FlowConfig.velocity_integration``; ``on_frame``: called
+    with each scored frame's flows (pictures: :func:`pidg.evaluation.visualize.truth_flow_comparison`)."""
     if radius is not None and not radius > 0:
         raise ValueError(f"motion evaluation: the matching radius must be > 0 world units, got {radius}")
     radius = default_radius(truth) if radius is None else float(radius)
@@ -454,7 +472,10 @@ def evaluate_motion(
         if gt.next_time > 1.0 + _TIME_TOL:  # the model is not defined after its recording
             skipped.append(frame.name)
         else:
-            frame_sums, n = _frame_flow_sums(model, frame, gt.flow, gt.dynamic, gt.next_time, velocity_integration)
+            flows = _frame_flows(model, frame, gt.flow, gt.dynamic, gt.next_time, velocity_integration)
+            frame_sums, n = _frame_flow_sums(flows)
+            if on_frame is not None:
+                on_frame(flows)
             for key, total in frame_sums.items():
                 sums[key] += total or 0.0
                 record[FLOW_KEYS[key]] = total / n if total is not None and n else None

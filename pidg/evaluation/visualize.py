@@ -1,5 +1,6 @@
 """Pictures of what a trained run has learnt beyond colour: velocity and stress of the material field, the three
-flows of the flow loss side by side, and the static/dynamic split. Used by ``pidg render``.
+flows of the flow loss side by side, the learned flows beside the true motion, and the static/dynamic split. Used
+by ``pidg render`` and ``pidg eval --motion-gt``.
 
 Everything is rendered through the ordinary rasterizer with extra per-Gaussian feature channels, so a pixel shows
 the compositing-weighted average over the Gaussians it sees (divided by alpha).
@@ -14,6 +15,7 @@ from torch import Tensor
 from pidg.data.scene import Frame
 from pidg.evaluation.flow_vis import flow_quiver, flow_rgb_tensor
 from pidg.evaluation.images import colorize_scalar
+from pidg.evaluation.motion import FrameFlows
 from pidg.flow import FlowConfig, FlowPair, decode_flows, render_pair_flows
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.material_field import stress_magnitude
@@ -92,6 +94,22 @@ def flow_comparison(
     ]
     errors = {"gaussian_flow_epe": result.epe_gaussian, "velocity_flow_epe": result.epe_velocity or float("nan")}
     return torch.cat(panels, dim=1), errors
+
+
+def truth_flow_comparison(flows: FrameFlows) -> tuple[Tensor, float]:
+    """[H, 4W, 3]: the true motion flow | the model's motion flow | its velocity flow (black without a material
+    field) | the end-point error of the velocity flow (of the motion flow without one), dark blue (0) to yellow, on
+    the scored pixels only (black elsewhere: no true dynamic surface, or not covered by the model). The flows share
+    one colour wheel saturated at the largest true motion on the scored pixels, and the error ramp tops out there
+    too; that magnitude (pixels) is returned."""
+    truth, scored, model = flows.truth.cpu(), flows.scored.cpu(), flows.model
+    scale = max(float(truth[scored].norm(dim=-1).max()), 1e-6) if bool(scored.any()) else 1.0
+    learned = (model.velocity if model.velocity is not None else model.motion).cpu()
+    error = (learned - truth).norm(dim=-1).nan_to_num(0.0)
+    velocity = flow_rgb_tensor(model.velocity, scale, scored) if model.velocity is not None else torch.zeros(*scored.shape, 3)
+    panels = [flow_rgb_tensor(truth, scale, scored), flow_rgb_tensor(model.motion, scale, scored), velocity,
+              colorize_scalar(error, scored, lo=0.0, hi=scale)]
+    return torch.cat(panels, dim=1), scale
 
 
 @torch.no_grad()

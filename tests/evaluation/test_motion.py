@@ -14,6 +14,7 @@ from xml.etree import ElementTree
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 from torch import Tensor, nn
 
 from pidg.data.motion_gt import FrameFlow, MotionObject, VertexMotion, read_motion_gt, write_frame_flow, write_motion_gt
@@ -224,6 +225,30 @@ def test_a_wrong_field_velocity_shows_in_the_velocity_errors_only(tmp_path):
     assert bare.flow.velocity_flow_epe is None and bare.velocity.field_rel is None and bare.flow.motion_flow_epe is not None
 
 
+def test_the_flow_picture_shows_truth_motion_velocity_and_error_on_the_scored_pixels(tmp_path):
+    from pidg.evaluation.flow_vis import flow_rgb_tensor
+    from pidg.evaluation.visualize import truth_flow_comparison
+
+    truth, frames = write_truth(tmp_path)
+    seen = []
+    evaluate_motion(plane_model(2 * VELOCITY / S), frames, truth, on_frame=seen.append)  # v twice the true speed
+    assert [f.frame.name for f in seen] == [f.name for f in frames]
+    flows = seen[0]
+    assert int(flows.scored.sum()) == SCORED_PIXELS // 2
+    panel, scale = truth_flow_comparison(flows)
+    size = math.hypot(*EXPECTED_PX)
+    assert tuple(panel.shape) == (H, 4 * W, 3) and scale == pytest.approx(size, rel=1e-5)
+    truth_panel, motion_panel, velocity_panel, error_panel = panel.split(W, dim=1)
+    off = ~flows.scored
+    assert off[:4].all() and off[:, :5].all() and all(bool((p[off] == 0).all()) for p in (truth_panel, motion_panel, velocity_panel, error_panel))
+    for shown, flow in ((truth_panel, flows.truth), (motion_panel, flows.model.motion), (velocity_panel, flows.model.velocity)):
+        torch.testing.assert_close(shown, flow_rgb_tensor(flow, scale, flows.scored))  # one colour scale, scored pixels only
+    assert float((velocity_panel - truth_panel).abs().max()) > 0.1  # twice the true motion: beyond the scale, darkened
+    # the velocity flow's error is the true flow's size, the top of the ramp: the ramp's last colour everywhere
+    yellow = torch.tensor([0.993, 0.906, 0.144])
+    torch.testing.assert_close(error_panel[flows.scored], yellow.expand(SCORED_PIXELS // 2, 3), atol=2e-3, rtol=0)
+
+
 class HalfStepField(nn.Module):
     """Still at dataset times in [k/8, k/8 + 1/32) and moving with VELOCITY (physics units) from k/8 + 1/32 on: the
     test frames (t = 0.25, 0.5) are at rest, the midpoints of their intervals (t + DT/2) are not."""
@@ -431,6 +456,9 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     assert data["target"]["pairs"] == 5 and data["target"]["depth"] == "model" and data["target"]["skipped"] == []
     assert "flow target (train pairs, model depth)" in lines[0]
     assert (run / "eval_test" / "metrics.json").is_file()
+    pictures = sorted((run / "eval_test" / "motion_flow").iterdir())  # truth | motion | velocity | error per test view
+    assert [p.stem for p in pictures] == sorted(r["view"].replace("/", "_") for r in data["per_frame"])
+    assert all(Image.open(p).size == (4 * 32, 32) for p in pictures)
     # each scored pair's target error, and their pixel-weighted mean is the pooled one
     pairs = data["target"]["per_pair"]
     assert len(pairs) == 5 and len({r["frame"] for r in pairs}) == 5
