@@ -31,6 +31,7 @@ from pidg.physics import PhysicsConfig, PhysicsKind
 from pidg.pipeline import DEMO_DEPTH_WEIGHT, evaluate_run, render_run, run_demo
 from pidg.report import build_report
 from pidg.scenes import KINDS as SCENE_KINDS
+from pidg.scenes import TEXTURES as SCENE_TEXTURES
 from pidg.scenes import SceneOptions, make_scene, parse_resolution, summary_lines
 from pidg.viewer import Quality, ViewerOptions, serve_run
 from pidg.viewer.server import measure_run
@@ -154,7 +155,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_make_scene(args: argparse.Namespace) -> int:
     width, height = parse_resolution(args.resolution)
     options = SceneOptions(args.kind, frames=args.frames, width=width, height=height, samples=args.samples,
-                           static_camera=args.static_camera, seed=args.seed, denoise=not args.no_denoise,
+                           static_camera=args.static_camera, texture=args.texture, seed=args.seed, denoise=not args.no_denoise,
                            points=args.points, verify=args.verify)
     summary = make_scene(options, Path(args.out), overwrite=args.overwrite)
     t, images = summary["timings"], summary["images"]
@@ -320,6 +321,9 @@ def build_parser() -> argparse.ArgumentParser:
     scene.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (denoised)")
     scene.add_argument("--no-denoise", action="store_true", help="no OpenImageDenoise pass")
     scene.add_argument("--static-camera", action="store_true", help="a fixed camera instead of one orbiting the scene")
+    scene.add_argument("--texture", choices=SCENE_TEXTURES, default="cells", help="surface pattern: cells (random-coloured "
+                       "Voronoi cells, not periodic) or checker (the scenes of the README's earlier issue-16 tables, whose "
+                       "period a tumbling object's surface moves by in a frame)")
     scene.add_argument("--seed", type=int, default=0, help="placement, colours and camera start")
     scene.add_argument("--points", type=int, default=10_000, help="points sampled for points3d.ply")
     scene.add_argument("--verify", action="store_true", help="check the ground truth independently; residuals -> "

@@ -5,8 +5,8 @@ uses it, inside its functions, so this package and the ``pidg`` command import w
 says in one line what to install. :mod:`pidg.scenes.ground_truth` (ray casting, flow, velocities) and
 :mod:`pidg.scenes.verify` need no bpy.
 """
-from pidg.scenes.blender_build import BPY_HINT, KINDS
+from pidg.scenes.blender_build import BPY_HINT, KINDS, TEXTURES
 from pidg.scenes.make_scene import SceneOptions, make_scene, parse_resolution
 from pidg.scenes.verify import summary_lines, verify_dataset
 
-__all__ = ["BPY_HINT", "KINDS", "SceneOptions", "make_scene", "parse_resolution", "summary_lines", "verify_dataset"]
+__all__ = ["BPY_HINT", "KINDS", "TEXTURES", "SceneOptions", "make_scene", "parse_resolution", "summary_lines", "verify_dataset"]

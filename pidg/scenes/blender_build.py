@@ -2,7 +2,7 @@
 and Blender's independent checks of the ground truth. Imports bpy (installed by ``pip install -e ".[scenes]"``).
 
 Every scene: a textured floor (8 x 8 world units at z = 0, world z up), a static textured block, a sun and a dim
-sky light, and the dynamic objects of its kind, all textured with procedural checker x noise patterns fixed to the
+sky light, and the dynamic objects of its kind, all textured with procedural patterns (:data:`TEXTURES`) fixed to the
 surface (object or UV coordinates), so optical flow has something to track:
 
 * ``rigid``: five objects (cube, sphere, cylinder, cone, small cube) dropped with random tilts, stacked so that they
@@ -21,10 +21,11 @@ and velocity need t + dt). Physics caches are baked (in memory) before anything 
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -108,31 +109,60 @@ def _input(sockets: Any, name: str, kind: str | None = None) -> Any:
     raise KeyError(f"no enabled socket {name!r} ({kind})")
 
 
-def textured_material(name: str, rng: np.random.Generator, coords: str = "Object", scale: float = 4.0) -> Any:
-    """A diffuse material with a two-colour checker times coloured noise, in ``coords`` ("Object": fixed to a rigid
-    object; "UV": fixed to a deforming surface), ``scale`` checker cells per unit (Object) or per UV tile."""
+#: ``make-scene --texture``: cells (random-coloured Voronoi cells with noise inside, not periodic, about 6 cells
+#: per world unit on the rigid bodies: ~8 px across at the default 200 px), or checker (a checker times noise at
+#: 6-8 cells per unit on the moving objects, the scenes of the earlier README tables). The checker's period on screen
+#: (~12 px at 200 px) is about what a tumbling rigid body's surface moves in a frame: the optical flow then locks
+#: onto the wrong period (README, issue 16).
+TEXTURES = ("cells", "checker")
+CELLS_PER_CHECKER = 0.75  # cells per unit of the cells texture / checker cells per unit at the same ``scale``
+MaterialMaker = Callable[..., Any]  # textured_material with its texture chosen: (name, rng, coords=, scale=) -> material
+
+
+def textured_material(name: str, rng: np.random.Generator, coords: str = "Object", scale: float = 4.0, texture: str = "cells") -> Any:
+    """A diffuse material of ``texture`` (:data:`TEXTURES`) in ``coords`` ("Object": fixed to a rigid object; "UV":
+    fixed to a deforming surface), ``scale`` checker cells per unit (Object) or per UV tile (the cells texture has
+    ``CELLS_PER_CHECKER`` times as many). Both draw one number (the hue) from ``rng``, so the two textures give the
+    same scene otherwise: the same simulation, cameras and ground-truth motion."""
     import bpy
 
+    if texture not in TEXTURES:
+        raise ValueError(f"--texture {texture!r}: choose one of {', '.join(TEXTURES)}")
     mat = bpy.data.materials.new(name)
     if mat.node_tree is None:  # Blender < 5 creates materials without nodes
         mat.use_nodes = True
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
     bsdf = nodes.get("Principled BSDF") or nodes.new("ShaderNodeBsdfPrincipled")
     coord = nodes.new("ShaderNodeTexCoord")
-    checker = nodes.new("ShaderNodeTexChecker")
     hue = float(rng.random())
-    checker.inputs["Color1"].default_value = _hsv(hue, 0.75, 0.85)
-    checker.inputs["Color2"].default_value = _hsv(hue + 0.45, 0.55, 0.25)
-    checker.inputs["Scale"].default_value = scale
+    if texture == "checker":
+        pattern = nodes.new("ShaderNodeTexChecker")
+        pattern.inputs["Color1"].default_value = _hsv(hue, 0.75, 0.85)
+        pattern.inputs["Color2"].default_value = _hsv(hue + 0.45, 0.55, 0.25)
+        pattern.inputs["Scale"].default_value = scale
+        noise_scale, detail, noise_weight = 3.0 * scale, 4.0, 0.7
+    else:  # each cell a random colour pulled towards the object's hue
+        cells = nodes.new("ShaderNodeTexVoronoi")
+        cells.inputs["Scale"].default_value = CELLS_PER_CHECKER * scale
+        links.new(coord.outputs[coords], cells.inputs["Vector"])
+        pattern = nodes.new("ShaderNodeMix")
+        pattern.data_type, pattern.blend_type = "RGBA", "MIX"
+        _input(pattern.inputs, "Factor", "VALUE").default_value = 0.85
+        _input(pattern.inputs, "A", "RGBA").default_value = _hsv(hue, 0.7, 0.8)
+        links.new(cells.outputs["Color"], _input(pattern.inputs, "B", "RGBA"))
+        noise_scale, detail, noise_weight = 2.0 * CELLS_PER_CHECKER * scale, 2.0, 0.5
     noise = nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = 3.0 * scale
-    noise.inputs["Detail"].default_value = 4.0
+    noise.inputs["Scale"].default_value = noise_scale
+    noise.inputs["Detail"].default_value = detail
     mix = nodes.new("ShaderNodeMix")
     mix.data_type, mix.blend_type = "RGBA", "MULTIPLY"
-    _input(mix.inputs, "Factor", "VALUE").default_value = 0.7
-    links.new(coord.outputs[coords], checker.inputs["Vector"])
+    _input(mix.inputs, "Factor", "VALUE").default_value = noise_weight
+    if texture == "checker":
+        links.new(coord.outputs[coords], pattern.inputs["Vector"])
+        links.new(pattern.outputs["Color"], _input(mix.inputs, "A", "RGBA"))
+    else:
+        links.new(_input(pattern.outputs, "Result", "RGBA"), _input(mix.inputs, "A", "RGBA"))
     links.new(coord.outputs[coords], noise.inputs["Vector"])
-    links.new(checker.outputs["Color"], _input(mix.inputs, "A", "RGBA"))
     links.new(noise.outputs["Color"], _input(mix.inputs, "B", "RGBA"))
     links.new(_input(mix.outputs, "Result", "RGBA"), bsdf.inputs["Base Color"])
     bsdf.inputs["Roughness"].default_value = 0.65
@@ -174,14 +204,14 @@ def _cache_range(cache: Any, end: int) -> None:
     cache.frame_start, cache.frame_end = 1, end
 
 
-def _common(scene: Any, rng: np.random.Generator, kind: str) -> tuple[Any, Any]:
+def _common(scene: Any, rng: np.random.Generator, kind: str, material: MaterialMaker) -> tuple[Any, Any]:
     """Floor, static block, lights, world; returns (floor, block)."""
     import bpy
 
-    floor = _add("primitive_plane_add", textured_material("floor", rng, scale=1.5), size=FLOOR_SIZE)
+    floor = _add("primitive_plane_add", material("floor", rng, scale=1.5), size=FLOOR_SIZE)
     floor.name = "floor"
     block_at = {"rigid": (1.6, -1.3, 0.35), "cloth": (-1.5, 1.4, 0.35), "soft": (-1.2, -1.5, 0.35), "kinematic": (-1.5, 1.5, 0.35)}
-    block = _add("primitive_cube_add", textured_material("block", rng, scale=5.0), size=0.7, location=block_at[kind])
+    block = _add("primitive_cube_add", material("block", rng, scale=5.0), size=0.7, location=block_at[kind])
     block.name = "block"
     block.rotation_euler = (0.0, 0.0, float(rng.uniform(0, math.pi)))
     sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
@@ -198,7 +228,7 @@ def _common(scene: Any, rng: np.random.Generator, kind: str) -> tuple[Any, Any]:
     return floor, block
 
 
-def _build_rigid(scene: Any, rng: np.random.Generator, sim_end: int) -> list[tuple[str, str]]:
+def _build_rigid(scene: Any, rng: np.random.Generator, sim_end: int, material: MaterialMaker) -> list[tuple[str, str]]:
     import bpy
 
     floor = bpy.data.objects["floor"]
@@ -217,7 +247,7 @@ def _build_rigid(scene: Any, rng: np.random.Generator, sim_end: int) -> list[tup
     dynamic = []
     for k, (op, kwargs, shape, location, restitution) in enumerate(specs):
         jitter = rng.uniform(-0.08, 0.08, size=3) * (1, 1, 0)
-        obj = _add(op, textured_material(f"body{k}", rng, scale=8.0), smooth=shape in ("SPHERE", "CYLINDER", "CONE"),
+        obj = _add(op, material(f"body{k}", rng, scale=8.0), smooth=shape in ("SPHERE", "CYLINDER", "CONE"),
                    location=tuple(np.add(location, jitter)), rotation=tuple(rng.uniform(-0.6, 0.6, size=3)), **kwargs)
         obj.name = f"body{k}_{shape.lower()}"
         _rigid(obj, "ACTIVE", shape, restitution=restitution, mass=1.0 + k * 0.3)
@@ -225,16 +255,16 @@ def _build_rigid(scene: Any, rng: np.random.Generator, sim_end: int) -> list[tup
     return dynamic
 
 
-def _build_cloth(scene: Any, rng: np.random.Generator, sim_end: int) -> list[tuple[str, str]]:
+def _build_cloth(scene: Any, rng: np.random.Generator, sim_end: int, material: MaterialMaker) -> list[tuple[str, str]]:
     import bpy
 
     _collider(bpy.data.objects["floor"])
     _collider(bpy.data.objects["block"])
-    sphere = _add("primitive_uv_sphere_add", textured_material("sphere", rng, scale=6.0), smooth=True,
+    sphere = _add("primitive_uv_sphere_add", material("sphere", rng, scale=6.0), smooth=True,
                   radius=0.5, segments=32, ring_count=16, location=(0.0, 0.0, 0.5))
     sphere.name = "sphere"
     _collider(sphere)
-    cloth = _add("primitive_grid_add", textured_material("cloth", rng, coords="UV", scale=8.0), smooth=True,
+    cloth = _add("primitive_grid_add", material("cloth", rng, coords="UV", scale=8.0), smooth=True,
                  x_subdivisions=27, y_subdivisions=27, size=1.8, location=(0.12, -0.08, 1.35),
                  rotation=(float(rng.uniform(-0.25, 0.25)), float(rng.uniform(-0.25, 0.25)), float(rng.uniform(0, math.pi))))
     cloth.name = "cloth"
@@ -248,16 +278,16 @@ def _build_cloth(scene: Any, rng: np.random.Generator, sim_end: int) -> list[tup
     return [("cloth", "cloth")]
 
 
-def _build_soft(scene: Any, rng: np.random.Generator, sim_end: int) -> list[tuple[str, str]]:
+def _build_soft(scene: Any, rng: np.random.Generator, sim_end: int, material: MaterialMaker) -> list[tuple[str, str]]:
     import bpy
 
     for name in ("floor", "block"):
         _collider(bpy.data.objects[name], thickness=0.04, damping=0.05)
-    ramp = _add("primitive_cube_add", textured_material("ramp", rng, scale=5.0), size=1.0, location=(0.6, 0.0, 0.45),
+    ramp = _add("primitive_cube_add", material("ramp", rng, scale=5.0), size=1.0, location=(0.6, 0.0, 0.45),
                 rotation=(0.0, math.radians(35.0), 0.0), scale=(1.0, 0.9, 0.15))
     ramp.name = "ramp"
     _collider(ramp, thickness=0.04, damping=0.05)
-    ball = _add("primitive_ico_sphere_add", textured_material("ball", rng, coords="UV", scale=6.0), smooth=True,
+    ball = _add("primitive_ico_sphere_add", material("ball", rng, coords="UV", scale=6.0), smooth=True,
                 subdivisions=3, radius=0.38, location=(0.45 + float(rng.uniform(-0.05, 0.05)), 0.0, 1.75))
     ball.name = "ball"
     mod = ball.modifiers.new("softbody", "SOFT_BODY")
@@ -283,11 +313,11 @@ def _fcurves(obj: Any) -> Any:
     return anim_utils.action_get_channelbag_for_slot(action, obj.animation_data.action_slot).fcurves
 
 
-def _build_kinematic(scene: Any, rng: np.random.Generator, sim_end: int) -> list[tuple[str, str]]:
+def _build_kinematic(scene: Any, rng: np.random.Generator, sim_end: int, material: MaterialMaker) -> list[tuple[str, str]]:
     """A head on a figure-eight with hops, rocking and turning once: one keyframe per channel (its rest value) plus
     additive F-curve modifiers (sines; a straight line for the turn), so the path is smooth to every order and
     sub-frame evaluation is exact (Bezier keys would be C1 only: finite differences across a key lose an order)."""
-    head = _add("primitive_monkey_add", textured_material("head", rng, scale=7.0), smooth=True, size=0.8)
+    head = _add("primitive_monkey_add", material("head", rng, scale=7.0), smooth=True, size=0.8)
     head.name = "head"
     phase = float(rng.uniform(0, 2 * math.pi))
     head.location, head.rotation_euler = (0.0, 0.0, 0.9), (0.0, 0.0, phase)
@@ -313,8 +343,9 @@ _BUILDERS = {"rigid": _build_rigid, "cloth": _build_cloth, "soft": _build_soft, 
 KINDS = tuple(_BUILDERS)
 
 
-def build_scene(kind: str, n_images: int, seed: int, fps: int, static_camera: bool) -> BuiltScene:
-    """A fresh Blender scene of ``kind`` for ``n_images`` images (one per frame at ``fps``), simulated through."""
+def build_scene(kind: str, n_images: int, seed: int, fps: int, static_camera: bool, texture: str = "cells") -> BuiltScene:
+    """A fresh Blender scene of ``kind`` for ``n_images`` images (one per frame at ``fps``), simulated through, its
+    surfaces of ``texture`` (:data:`TEXTURES`)."""
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -323,8 +354,9 @@ def build_scene(kind: str, n_images: int, seed: int, fps: int, static_camera: bo
     sim_end = FIRST_IMAGE_FRAME + n_images  # one frame past the last image
     scene.frame_start, scene.frame_end = 1, sim_end
     scene.render.fps = fps
-    _common(scene, rng, kind)
-    dynamic = _BUILDERS[kind](scene, rng, sim_end)
+    material = functools.partial(textured_material, texture=texture)
+    _common(scene, rng, kind, material)
+    dynamic = _BUILDERS[kind](scene, rng, sim_end, material)
     camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
     camera.data.sensor_fit, camera.data.angle_x = "HORIZONTAL", math.radians(FOV_X_DEG)
     camera.data.clip_start, camera.data.clip_end = 0.01, 100.0

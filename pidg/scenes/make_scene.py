@@ -63,6 +63,7 @@ class SceneOptions:
     height: int = 200
     samples: int = 16  # Cycles samples per pixel
     static_camera: bool = False
+    texture: str = "cells"  # surface pattern: bb.TEXTURES (cells; checker: the earlier scenes)
     seed: int = 0
     fps: int = 24
     denoise: bool = True
@@ -72,6 +73,8 @@ class SceneOptions:
     def __post_init__(self) -> None:
         if self.kind not in bb.KINDS:
             raise ValueError(f"scene kind {self.kind!r}: choose one of {', '.join(bb.KINDS)}")
+        if self.texture not in bb.TEXTURES:
+            raise ValueError(f"--texture {self.texture!r}: choose one of {', '.join(bb.TEXTURES)}")
         if not 4 <= self.frames <= 2000:
             raise ValueError(f"--frames {self.frames}: give 4 to 2000 images")
         if not (MIN_SIDE <= self.width <= MAX_SIDE and MIN_SIDE <= self.height <= MAX_SIDE):
@@ -259,7 +262,7 @@ def make_scene(options: SceneOptions, out: Path | str, overwrite: bool = False) 
     timings: dict[str, float] = {}
     start = time.perf_counter()
     n = options.frames
-    built = bb.build_scene(options.kind, n, options.seed, options.fps, options.static_camera)
+    built = bb.build_scene(options.kind, n, options.seed, options.fps, options.static_camera, options.texture)
     geometry, subframe = collect_geometry(built, n)
     timings["simulate_s"] = time.perf_counter() - start
 

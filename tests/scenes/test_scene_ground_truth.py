@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from pidg.cli import main
+from pidg.scenes import SceneOptions
 from pidg.scenes.capture import Orbit, look_at_gl, pidg_camera, shot_list
 from pidg.scenes.ground_truth import (
     Triangles,
@@ -214,6 +215,11 @@ def test_make_scene_rejects_bad_options_in_one_line(tmp_path, capsys, args, mess
     assert main(["make-scene", "cloth", "--out", str(tmp_path / "x"), *args]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err
+
+
+def test_scene_options_name_an_unknown_texture():
+    with pytest.raises(ValueError, match="--texture 'stripes': choose one of cells, checker"):
+        SceneOptions("rigid", texture="stripes")
 
 
 def test_make_scene_refuses_an_existing_folder(tmp_path, capsys):
