@@ -109,21 +109,20 @@ def _input(sockets: Any, name: str, kind: str | None = None) -> Any:
     raise KeyError(f"no enabled socket {name!r} ({kind})")
 
 
-#: ``make-scene --texture``: cells (random-coloured Voronoi cells with noise inside, not periodic, about 6 cells
-#: per world unit on the rigid bodies: ~8 px across at the default 200 px), or checker (a checker times noise at
-#: 6-8 cells per unit on the moving objects, the scenes of the earlier README tables). The checker's period on screen
-#: (~12 px at 200 px) is about what a tumbling rigid body's surface moves in a frame: the optical flow then locks
-#: onto the wrong period (README, issue 16).
+#: ``make-scene --texture``: cells (random-coloured Voronoi cells, not periodic) or checker (a two-colour checker, the
+#: scenes of the README's issue-16 tables measured before 2026-11-28), each the same size (``scale`` cells a unit: ~6
+#: px across on the rigid bodies at the default 200 px) and times the same fine noise. The checker's period on screen
+#: (~12 px) is about what a tumbling rigid body's surface moves in a frame: the optical flow then locks onto the
+#: wrong period (README, issue 16).
 TEXTURES = ("cells", "checker")
-CELLS_PER_CHECKER = 0.75  # cells per unit of the cells texture / checker cells per unit at the same ``scale``
 MaterialMaker = Callable[..., Any]  # textured_material with its texture chosen: (name, rng, coords=, scale=) -> material
 
 
 def textured_material(name: str, rng: np.random.Generator, coords: str = "Object", scale: float = 4.0, texture: str = "cells") -> Any:
-    """A diffuse material of ``texture`` (:data:`TEXTURES`) in ``coords`` ("Object": fixed to a rigid object; "UV":
-    fixed to a deforming surface), ``scale`` checker cells per unit (Object) or per UV tile (the cells texture has
-    ``CELLS_PER_CHECKER`` times as many). Both draw one number (the hue) from ``rng``, so the two textures give the
-    same scene otherwise: the same simulation, cameras and ground-truth motion."""
+    """A diffuse material of ``texture`` (:data:`TEXTURES`) times coloured noise, in ``coords`` ("Object": fixed to a
+    rigid object; "UV": fixed to a deforming surface), ``scale`` cells per unit (Object) or per UV tile. Both draw one
+    number (the hue) from ``rng``, so the two textures give the same scene otherwise: the same simulation, cameras and
+    ground-truth motion."""
     import bpy
 
     if texture not in TEXTURES:
@@ -140,29 +139,26 @@ def textured_material(name: str, rng: np.random.Generator, coords: str = "Object
         pattern.inputs["Color1"].default_value = _hsv(hue, 0.75, 0.85)
         pattern.inputs["Color2"].default_value = _hsv(hue + 0.45, 0.55, 0.25)
         pattern.inputs["Scale"].default_value = scale
-        noise_scale, detail, noise_weight = 3.0 * scale, 4.0, 0.7
+        links.new(coord.outputs[coords], pattern.inputs["Vector"])
+        colour = pattern.outputs["Color"]
     else:  # each cell a random colour pulled towards the object's hue
         cells = nodes.new("ShaderNodeTexVoronoi")
-        cells.inputs["Scale"].default_value = CELLS_PER_CHECKER * scale
+        cells.inputs["Scale"].default_value = scale
         links.new(coord.outputs[coords], cells.inputs["Vector"])
         pattern = nodes.new("ShaderNodeMix")
         pattern.data_type, pattern.blend_type = "RGBA", "MIX"
         _input(pattern.inputs, "Factor", "VALUE").default_value = 0.85
         _input(pattern.inputs, "A", "RGBA").default_value = _hsv(hue, 0.7, 0.8)
         links.new(cells.outputs["Color"], _input(pattern.inputs, "B", "RGBA"))
-        noise_scale, detail, noise_weight = 2.0 * CELLS_PER_CHECKER * scale, 2.0, 0.5
+        colour = _input(pattern.outputs, "Result", "RGBA")
     noise = nodes.new("ShaderNodeTexNoise")
-    noise.inputs["Scale"].default_value = noise_scale
-    noise.inputs["Detail"].default_value = detail
+    noise.inputs["Scale"].default_value = 3.0 * scale
+    noise.inputs["Detail"].default_value = 4.0
     mix = nodes.new("ShaderNodeMix")
     mix.data_type, mix.blend_type = "RGBA", "MULTIPLY"
-    _input(mix.inputs, "Factor", "VALUE").default_value = noise_weight
-    if texture == "checker":
-        links.new(coord.outputs[coords], pattern.inputs["Vector"])
-        links.new(pattern.outputs["Color"], _input(mix.inputs, "A", "RGBA"))
-    else:
-        links.new(_input(pattern.outputs, "Result", "RGBA"), _input(mix.inputs, "A", "RGBA"))
+    _input(mix.inputs, "Factor", "VALUE").default_value = 0.7
     links.new(coord.outputs[coords], noise.inputs["Vector"])
+    links.new(colour, _input(mix.inputs, "A", "RGBA"))
     links.new(noise.outputs["Color"], _input(mix.inputs, "B", "RGBA"))
     links.new(_input(mix.outputs, "Result", "RGBA"), bsdf.inputs["Base Color"])
     bsdf.inputs["Roughness"].default_value = 0.65
