@@ -65,12 +65,14 @@ class FlowConfig:
     """Optical-flow estimator: OpenCV DIS (fast), DeepFlow, Dual TV-L1, or RAFT from local weights."""
     dis_preset: DisPreset = "medium"
     """OpenCV DIS preset (speed against accuracy)."""
-    upsample: Annotated[int, AT_LEAST_ONE] = 2
+    upsample: Annotated[int, AT_LEAST_ONE] = 4
     """Factor the images are enlarged by (bicubic) before an OpenCV estimator runs (RAFT runs at the images' size);
     its flow is averaged back onto the images' pixels and divided by it. DIS matches fixed 8-pixel patches, which on
     small images straddle an object's edge and smooth its motion into the background's: 2 cut the motion-flow
-    target's error against the true motion by 40-45 % on the demo and generated scenes (README, issue 16), for 4x
-    the estimation time (~0.1 s per 400x400 flow); 1 is the images' own resolution."""
+    target's error against the true motion by 40-45 % on the demo and generated scenes, 4 by another 6-32 % on the
+    generated ones, and the full method's velocity flow on the generated scenes' val views was closer to the truth at 4 than at 2 in 9 of 10
+    runs (README, issue 16). On this project's 2-core machine a 400x400 flow takes ~0.45 s at 4, ~0.1 s at 2 and ~0.01
+    s at 1, once (the flows are cached): ~2 minutes for a 150-frame scene at 4; 1 is the images' own resolution."""
     raft_weights: Path | None = None
     """Local RAFT weights (.pt2 export, TorchScript, or a torchvision state dict); nothing is downloaded."""
     consistency_alpha: Annotated[float, NON_NEGATIVE] = 0.01
