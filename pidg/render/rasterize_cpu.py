@@ -656,7 +656,8 @@ class _CompositeCPU(torch.autograd.Function):
         with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
             _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, extra, trans, end)
         ctx.save_for_backward(means2d, conics, opacities, features)
-        ctx.bins, ctx.trans, ctx.end, ctx.size, ctx.row_dims = bins, trans, end, (width, height, image_channels), row_dims
+        ctx.bins, ctx.trans, ctx.end, ctx.size = bins, trans, end, (width, height, image_channels)
+        ctx.row_dims, ctx.tile_dims = row_dims, tile_dims
         dtype = features.dtype
         return torch.from_numpy(img).to(dtype), torch.from_numpy(1.0 - trans).to(dtype), torch.from_numpy(extra).to(dtype)
 
@@ -666,14 +667,14 @@ class _CompositeCPU(torch.autograd.Function):
         bins: TileBins = ctx.bins
         width, height, image_channels = ctx.size
         n, dim = features.shape
-        row_dims = ctx.row_dims
+        row_dims, tile_dims = ctx.row_dims, ctx.tile_dims
         if grad_extra is None:  # the extra channels add nothing to the loss: their tiles' backward skips them
-            row_dims, grad_extra = np.minimum(row_dims, image_channels), torch.zeros(0, 0, 0)
+            row_dims, tile_dims = np.minimum(row_dims, image_channels), np.minimum(tile_dims, image_channels)
+            grad_extra = torch.zeros(0, 0, 0)
         img_grad = np.zeros((height, width, image_channels), np.float32) if grad_img is None else float32_array(grad_img)
         alpha_grad = np.zeros((height, width), np.float32) if grad_alpha is None else float32_array(grad_alpha)
         # per intersection, rows no pixel reached are 0; the extra channels' apart, for the tiles that composite them
         isect_grads = np.zeros((bins.num_intersections, _N_PARAMS + image_channels), dtype=np.float32)
-        tile_dims = _tile_maxima(row_dims, bins.tile_size, bins.tiles_y)
         extra_tiles = tile_dims > image_channels
         lengths = np.diff(bins.tile_offsets) * extra_tiles
         extra_rows = np.where(extra_tiles, np.cumsum(lengths) - lengths, -1)

@@ -125,8 +125,6 @@ def textured_material(name: str, rng: np.random.Generator, coords: str = "Object
     ground-truth motion."""
     import bpy
 
-    if texture not in TEXTURES:
-        raise ValueError(f"--texture {texture!r}: choose one of {', '.join(TEXTURES)}")
     mat = bpy.data.materials.new(name)
     if mat.node_tree is None:  # Blender < 5 creates materials without nodes
         mat.use_nodes = True
@@ -342,7 +340,10 @@ KINDS = tuple(_BUILDERS)
 def build_scene(kind: str, n_images: int, seed: int, fps: int, static_camera: bool, texture: str = "cells") -> BuiltScene:
     """A fresh Blender scene of ``kind`` for ``n_images`` images (one per frame at ``fps``), simulated through, its
     surfaces of ``texture`` (:data:`TEXTURES`)."""
+    if texture not in TEXTURES:  # before anything is built (SceneOptions checks it for the command line)
+        raise ValueError(f"--texture {texture!r}: choose one of {', '.join(TEXTURES)}")
     import bpy
+
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
