@@ -289,7 +289,7 @@ class Trainer:
         writer = _tensorboard(out_dir / "tensorboard")
         bar = tqdm(total=total, initial=self.step, desc="training", disable=not cfg.output.progress, dynamic_ncols=True)
         budget = None if cfg.optim.time_budget_minutes is None else 60.0 * cfg.optim.time_budget_minutes
-        fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy == "fit"
+        fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy in ("fit", "fill")
         stopped_by = None
         torch_threads = torch.get_num_threads()
         on_cpu_threads = self.device.type == "cpu" and bool(cfg.cpu_torch_threads)  # torch's own ops on that many threads
@@ -366,9 +366,10 @@ class Trainer:
         return max(settled if settled < 0.9 * o.iterations else 0, o.iterations // 10)
 
     def _fit_to_budget(self, budget_seconds: float, out_dir: Path) -> bool:
-        """Time the steps from ``fit_start()`` over ``FIT_WINDOW_STEPS``, then shorten the run (never lengthen it) so
-        that it ends inside the budget, with every learning-rate schedule over the new length. True when the run's
-        length was decided at this step (``self.schedule_fit`` records how), shortened or not."""
+        """Time the steps from ``fit_start()`` over ``FIT_WINDOW_STEPS``, then set the run's length so that it ends
+        inside the budget, with every learning-rate schedule over the new length: policy "fit" only shortens it,
+        "fill" also lengthens it, up to ``time_budget_max_stretch`` times the planned steps. True when the run's
+        length was decided at this step (``self.schedule_fit`` records how), changed or not."""
         o = self.config.optim
         start = self.fit_start()
         if self.step < start:
@@ -381,17 +382,18 @@ class Trainer:
             return False
         per_step = (self.train_seconds - mark_seconds) / (self.step - mark_step)
         affordable = int((FIT_BUDGET_SHARE * budget_seconds - self.train_seconds) / max(per_step, 1e-9))
-        iterations = min(o.iterations, self.step + max(affordable, 1))
+        longest = o.iterations if o.time_budget_policy == "fit" else int(o.iterations * o.time_budget_max_stretch)
+        iterations = min(longest, self.step + max(affordable, 1))
         self.schedule_fit = {
             "step": self.step, "seconds_per_step": per_step, "budget_minutes": budget_seconds / 60.0,
             "iterations_planned": o.iterations, "iterations": iterations,
         }
-        if iterations < o.iterations:
+        if iterations != o.iterations:
             self.config = replace(self.config, optim=replace(o, iterations=iterations))
             reschedule(self.optimizers, self.config, self.extent)
             save_config(self.config, out_dir / CONFIG_FILE)
             logger.info(
-                "step %d: %.3f s a step over steps %d-%d, so %d of the planned %d steps fit the %g-minute budget; "
+                "step %d: %.3f s a step over steps %d-%d, so %d steps (%d planned) fit the %g-minute budget; "
                 "the run and its learning-rate schedules now end at step %d",
                 self.step, per_step, mark_step, self.step, iterations, o.iterations, budget_seconds / 60.0, iterations,
             )

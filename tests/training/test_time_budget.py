@@ -1,7 +1,9 @@
-"""A time budget either stops a run where it is ("stop") or shortens the run to end inside it ("fit"), with every
-learning-rate schedule over the new length; a machine fast enough for the planned run trains it unchanged."""
+"""A time budget either stops a run where it is ("stop"), shortens the run to end inside it ("fit"), or fits the run to
+it either way ("fill": shortened if slow, lengthened up to a bound if fast), with every learning-rate schedule over
+the new length; under "fit" a machine fast enough for the planned run trains it unchanged."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
+import dataclasses
 import json
 
 import pytest
@@ -78,8 +80,35 @@ def test_a_machine_fast_enough_trains_the_planned_run_unchanged(small_scene, con
         assert torch.equal(value, fitted.model.gaussians.params[name]), name
 
 
+def test_a_filled_run_is_lengthened_to_its_budget_up_to_the_stretch_bound(small_scene, config, tmp_path):
+    budget_s = 30.0  # 60 steps' worth: more than the planned 40
+    trainer, summary = trained(config(tmp_path / "fill", budget_s / 60, "fill"), small_scene)
+    expected = 12 + int((0.98 * budget_s - 12 * SECONDS_PER_STEP) / SECONDS_PER_STEP)
+    assert expected == 58 and summary["schedule_fit"]["iterations"] == expected == summary["iterations"]
+    assert summary["stopped_by"] is None and summary["train_minutes"] * 60 <= budget_s
+    assert json.loads((tmp_path / "fill" / "config.json").read_text())["optim"]["iterations"] == expected
+    means, deformation = trainer.optimizers["means"], trainer.optimizers["deformation"]
+    g = trainer.config.gaussian_optim
+    base = means.optimizer.param_groups[0]["base_lr"]
+    assert means.schedule(expected, base) == pytest.approx(g.means_lr_final * trainer.extent)  # decays over the longer run
+    assert means.schedule(40, base) > means_lr_at(40, g, trainer.extent, 40)
+    assert deformation.schedule(expected, 1.0) == pytest.approx(0.1)
+    # a much larger budget lengthens it only up to time_budget_max_stretch x the planned 40 steps
+    bounded = config(tmp_path / "bounded", 600.0 / 60, "fill")
+    bounded = dataclasses.replace(bounded, optim=dataclasses.replace(bounded.optim, time_budget_max_stretch=1.25))
+    _, summary = trained(bounded, small_scene)
+    assert summary["schedule_fit"]["iterations"] == summary["iterations"] == 50
+
+
+def test_a_filled_run_on_a_slow_machine_is_shortened_as_a_fitted_one(small_scene, config, tmp_path):
+    _, fitted = trained(config(tmp_path / "fit", 15.0 / 60, "fit"), small_scene)
+    _, filled = trained(config(tmp_path / "fill", 15.0 / 60, "fill"), small_scene)
+    assert filled["schedule_fit"] == fitted["schedule_fit"] and filled["iterations"] == fitted["iterations"] == 29
+
+
 def test_the_cpu_preset_fits_d_nerf_runs_to_thirty_minutes():
     cpu = apply_preset(TrainConfig(device="cpu"), "cpu", "dnerf").optim
-    assert (cpu.iterations, cpu.time_budget_minutes, cpu.time_budget_policy) == (12_000, 30.0, "fit")
+    assert (cpu.iterations, cpu.time_budget_minutes, cpu.time_budget_policy) == (12_000, 30.0, "fill")
+    assert cpu.time_budget_max_stretch == 1.5
     other = apply_preset(TrainConfig(device="cpu"), "cpu", "pidg").optim
     assert (other.time_budget_minutes, other.time_budget_policy) == (None, "stop")
