@@ -1,6 +1,7 @@
 """`pidg render` on a tiny full-PIDG run writes the physics and flow pictures next to the usual videos."""
 import dataclasses
 import json
+import re
 
 import pytest
 import torch
@@ -55,6 +56,8 @@ def test_cli_eval_with_lpips_none_writes_metrics_without_lpips(full_run):
     assert main(["eval", str(full_run), "--split", "test", "--lpips", "none"]) == 0
     metrics = json.loads((full_run / "eval_test" / "metrics.json").read_text())
     assert metrics["mean"]["psnr"] > 0 and not any("lpips" in k for k in metrics["mean"])
+    chart = (full_run / "eval_test" / "psnr_over_time.svg").read_text()  # one point per view
+    assert len(re.search(r'points="([^"]+)"', chart).group(1).split()) == metrics["views"]
 
 
 @pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
