@@ -115,6 +115,14 @@ def _input(sockets: Any, name: str, kind: str | None = None) -> Any:
 #: (~12 px) is about what a tumbling rigid body's surface moves in a frame: the optical flow then locks onto the
 #: wrong period (README, issue 16).
 TEXTURES = ("cells", "checker")
+
+
+def check_texture(texture: str) -> None:
+    """One line naming the option when ``texture`` is not one of :data:`TEXTURES`."""
+    if texture not in TEXTURES:
+        raise ValueError(f"--texture {texture!r}: choose one of {', '.join(TEXTURES)}")
+
+
 MaterialMaker = Callable[..., Any]  # textured_material with its texture chosen: (name, rng, coords=, scale=) -> material
 
 
@@ -340,10 +348,8 @@ KINDS = tuple(_BUILDERS)
 def build_scene(kind: str, n_images: int, seed: int, fps: int, static_camera: bool, texture: str = "cells") -> BuiltScene:
     """A fresh Blender scene of ``kind`` for ``n_images`` images (one per frame at ``fps``), simulated through, its
     surfaces of ``texture`` (:data:`TEXTURES`)."""
-    if texture not in TEXTURES:  # before anything is built (SceneOptions checks it for the command line)
-        raise ValueError(f"--texture {texture!r}: choose one of {', '.join(TEXTURES)}")
+    check_texture(texture)  # before anything is built
     import bpy
-
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene

@@ -73,8 +73,7 @@ class SceneOptions:
     def __post_init__(self) -> None:
         if self.kind not in bb.KINDS:
             raise ValueError(f"scene kind {self.kind!r}: choose one of {', '.join(bb.KINDS)}")
-        if self.texture not in bb.TEXTURES:
-            raise ValueError(f"--texture {self.texture!r}: choose one of {', '.join(bb.TEXTURES)}")
+        bb.check_texture(self.texture)
         if not 4 <= self.frames <= 2000:
             raise ValueError(f"--frames {self.frames}: give 4 to 2000 images")
         if not (MIN_SIDE <= self.width <= MAX_SIDE and MIN_SIDE <= self.height <= MAX_SIDE):
