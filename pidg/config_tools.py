@@ -221,6 +221,14 @@ def _leaves(cls: type, prefix: str = "") -> list[tuple[str, Any, dataclasses.Fie
     return out
 
 
+def _takes_several(tp: Any) -> bool:
+    """Whether an option may be given as several words: a tuple or list, or a union with one (a resolution of one
+    int or three: ``--...finest_resolution 32 32 64`` as well as ``32,32,64`` or ``32``)."""
+    inner = _strip_optional(tp)[0]
+    options = get_args(inner) if get_origin(inner) in (Union, types.UnionType) else (inner,)
+    return any(get_origin(a) in (tuple, list) for a in options)
+
+
 def _metavar(tp: Any) -> str:
     inner, optional = _strip_optional(tp)
     choices = literal_choices(inner) or ((True, False) if inner is bool else ())
@@ -259,7 +267,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             groups[section] = parser.add_argument_group(title, summary or None)
         doc = field_docs(owner).get(f.name, "")
         # several values as separate words (``--data.splits train val test``) or one (``train,val,test``)
-        several = get_origin(_strip_optional(tp)[0]) in (tuple, list)
+        several = _takes_several(tp)
         groups[section].add_argument(
             f"--{name}", dest=f"cfg::{name}", default=_MISSING, metavar=_metavar(tp), nargs="+" if several else None,
             help=f"{doc} ({_default_text(f, owner)})".strip().replace("%", "%%"),

@@ -62,6 +62,21 @@ def test_several_values_are_separate_words_or_one_comma_separated_word():
         parser.parse_args(["--optim.iterations", "5", "6"])
 
 
+def test_an_int_or_three_option_takes_one_word_three_words_or_commas():
+    """A hash grid's resolution is one int or three (x y z): as separate words (the help's form), comma-separated, or
+    one int; two words are an error that names the option."""
+    from pidg.training.config import TrainConfig
+
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser, TrainConfig)
+    option = "--deformation.grid4d.temporal_grid.finest_resolution"
+    for words, expected in ((["32", "32", "64"], (32, 32, 64)), (["32,32,64"], (32, 32, 64)), (["48"], 48)):
+        cfg = apply_overrides(TrainConfig(), overrides_from_args(parser.parse_args([option, *words])))
+        assert cfg.deformation.grid4d.temporal_grid.finest_resolution == expected
+    with pytest.raises(ValueError, match="finest_resolution"):
+        apply_overrides(TrainConfig(), overrides_from_args(parser.parse_args([option, "32", "64"])))
+
+
 def test_sizes_parse_with_x_but_names_keep_it():
     @dataclass
     class Names:
