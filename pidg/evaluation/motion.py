@@ -38,7 +38,10 @@ every vertex is matched to its nearest Gaussian as above; those Gaussians are th
 ground-truth sample time in [0, 1], and their displacement since the anchor is compared with their vertex's:
 error = mean |(g(t) - g(t_a)) - (x(t) - x(t_a))|, travel = mean |x(t) - x(t_a)| (world units; travel is a
 standing-still model's error), relative = the pooled error / travel (0: the Gaussians carry the surface along; 1: no
-better than standing still), also per ground-truth object. Per-frame flow and velocity see a few frame intervals at
+better than standing still), also per ground-truth object, and over the matches whose Gaussian the anchor's view
+sees (its compositing weight summed over the image at least :data:`SEEN_MIN_WEIGHT` pixels, :func:`seen_gaussians`):
+the nearest Gaussian to a vertex may be one no view shows at that time (behind the surface, or hidden under
+others), which neither the pixels nor a flow loss constrain there. Per-frame flow and velocity see a few frame intervals at
 most; a model that rebuilds a moving object from other Gaussians as it goes (the positions right, the particles'
 identity lost) scores well there and only fails here.
 
@@ -64,6 +67,7 @@ from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.charts import svg_chart
 from pidg.flow import FlowCache, FlowConfig, FlowTarget, VelocityIntegration, interval_velocity, model_flow_target
 from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
+from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.time_axis import TimeAxis
 from pidg.render import Camera
@@ -145,6 +149,8 @@ class TrackingScores:
     travel: float | None  # mean |x(t) - x(t_a)|: the error of Gaussians that stand still
     relative: float | None  # pooled error / travel
     per_object: dict[str, float | None] = field(default_factory=dict)  # relative, per ground-truth object
+    seen_share: float | None = None  # share of the matches whose Gaussian the anchor's view sees (SEEN_MIN_WEIGHT)
+    seen_relative: float | None = None  # relative, over those matches only
 
 
 @dataclass
@@ -193,6 +199,7 @@ class MotionEvaluation:
             "gt_velocity_rel_field": self.velocity.field_rel,
             "gt_coverage": self.velocity.coverage,
             "gt_track_rel": None if self.tracking is None else self.tracking.relative,
+            "gt_track_rel_seen": None if self.tracking is None else self.tracking.seen_relative,
             "gt_target_flow_epe": None if self.target is None else self.target.target_epe,
         }
 
@@ -250,7 +257,8 @@ UNITS = {
 def _tracking_text(t: TrackingScores) -> str:
     objects = "".join(f"; {name} {_num(rel)}" for name, rel in t.per_object.items()) if len(t.per_object) > 1 else ""
     return (f"3D tracking from the {t.anchors} view times through the recording: error {_num(t.error)} vs travel "
-            f"{_num(t.travel)} world units (relative {_num(t.relative)}{objects})")
+            f"{_num(t.travel)} world units (relative {_num(t.relative)}{objects}; the {_pct(t.seen_share)} whose "
+            f"Gaussian the view sees: {_num(t.seen_relative)})")
 
 
 def _px(v: float | None) -> str:
@@ -463,7 +471,7 @@ def evaluate_motion(
         "speed_all": [], "speed": [], "distance": [], "deformation": [], "field": [], "ray": [], "v_gt": [], "euler": [],
         "second_order": [],
     }
-    matches: dict[float, tuple[Tensor, Tensor]] = {}  # vertex sample time -> matched vertices, their Gaussians
+    matches: dict[float, tuple[Tensor, Tensor, Tensor]] = {}  # sample time -> matched vertices, their Gaussians, seen
     for frame in frames:
         record: dict[str, Any] = {"view": frame.name, "time": frame.time}
         gt = truth.frame_flow(frame.name)
@@ -500,30 +508,31 @@ def evaluate_motion(
 
 
 def _tracking_scores(
-    model: DynamicGaussians, truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor]]
+    model: DynamicGaussians, truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor, Tensor]]
 ) -> tuple[TrackingScores | None, dict[float, dict[str, float | None]]]:
     """The 3D tracking scores (module docstring) and, per anchor time, its ``track_error`` and ``track_travel``.
-    ``matches``: per anchor time, the matched vertices and their Gaussians (the 3D velocity's matching,
-    :func:`_velocity_at`); one deformation per ground-truth sample time follows them."""
+    ``matches``: per anchor time, the matched vertices, their Gaussians (the 3D velocity's matching,
+    :func:`_velocity_at`) and whether the anchor's view sees each (:func:`seen_gaussians`); one deformation per
+    ground-truth sample time follows them."""
     vertices = truth.vertices
     times = [float(t) for t in vertices.times if -_TIME_TOL <= t <= 1.0 + _TIME_TOL]
     if len(times) < 2 or not matches:
         return None, {}
     n_vertices = len(matches) * vertices.positions.shape[1]
-    rows = torch.unique(torch.cat([g for _, g in matches.values()]))
+    rows = torch.unique(torch.cat([g for _, g, _ in matches.values()]))
     slot = torch.full((model.num_gaussians,), -1, dtype=torch.long, device=model.device)
     slot[rows] = torch.arange(len(rows), device=model.device)
     followed = torch.stack([model.at(t, rows=rows).means for t in times])  # [T, R, 3]
     sample_of = [vertices.index_of(t, _TIME_TOL) for t in times]
     truth_at = torch.from_numpy(vertices.positions[sample_of]).to(model.device)  # [T, V, 3]
-    error_sum = travel_sum = 0.0
-    samples = matched = 0
+    error_sum = travel_sum = seen_error = seen_travel = 0.0
+    samples = matched = seen_matches = 0
     owner = torch.zeros(vertices.positions.shape[1], dtype=torch.long, device=model.device)  # vertex -> object
     for i, obj in enumerate(truth.objects):
         owner[obj.first_vertex : obj.first_vertex + obj.n_vertices] = i
     object_sums = torch.zeros(len(truth.objects), 2, dtype=torch.float64, device=model.device)  # error, travel
     per_anchor: dict[float, dict[str, float | None]] = {}
-    for t_a, (verts, gauss) in matches.items():
+    for t_a, (verts, gauss, seen) in matches.items():
         k = vertices.index_of(t_a, _TIME_TOL)
         others = [i for i, s in enumerate(sample_of) if s != k]
         if not len(verts) or not others:
@@ -535,6 +544,8 @@ def _tracking_scores(
         error = (moved - true_moved).norm(dim=-1).double()
         travel = true_moved.norm(dim=-1).double()
         error_sum, travel_sum = error_sum + float(error.sum()), travel_sum + float(travel.sum())
+        seen_error, seen_travel = seen_error + float(error[:, seen].sum()), seen_travel + float(travel[:, seen].sum())
+        seen_matches += int(seen.sum())
         object_sums.index_add_(0, owner[verts], torch.stack([error.sum(0), travel.sum(0)], dim=-1))
         samples, matched = samples + error.numel(), matched + len(verts)
         per_anchor[t_a] = {"track_error": float(error.mean()), "track_travel": float(travel.mean())}
@@ -542,8 +553,35 @@ def _tracking_scores(
         anchors=len(matches), samples=samples, coverage=_ratio(matched, n_vertices),
         error=_ratio(error_sum, samples), travel=_ratio(travel_sum, samples), relative=_ratio(error_sum, travel_sum),
         per_object={obj.name: _ratio(e, t) for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
+        seen_share=_ratio(seen_matches, matched), seen_relative=_ratio(seen_error, seen_travel),
     )
     return scores, per_anchor
+
+
+SEEN_MIN_WEIGHT = 0.1
+"""Total compositing weight (in pixels: 1 = all of one pixel's colour) from which a view sees a Gaussian: a tenth
+of a pixel, so that small Gaussians on the surface count and those behind it (a few % of a pixel) do not."""
+
+
+def rendered_weights(model: DynamicGaussians, state: DeformedGaussians, camera: Camera) -> Tensor:
+    """Each Gaussian's compositing weight summed over the pixels of its render in ``camera`` [N] (pixels): how much
+    of the image it makes (they add up to the render's alpha summed over its pixels); nearly 0 for one hidden behind
+    others, 0 outside the view. The gradient of the summed render of a constant feature with respect to that feature
+    (one render and its backward)."""
+    detached = DeformedGaussians(state.means.detach(), state.quats.detach(), state.log_scales.detach())
+    with torch.enable_grad():
+        ones = detached.means.new_ones(detached.means.shape[0], 1, requires_grad=True)
+        out = model.render_state(detached, camera, ones)
+        (weights,) = torch.autograd.grad(out.features[..., 0].sum(), ones)
+    return weights[:, 0]
+
+
+def seen_gaussians(model: DynamicGaussians, frame: Frame, min_weight: float = SEEN_MIN_WEIGHT) -> Tensor:
+    """[N] bool: the Gaussians that ``frame``'s view at its time sees (:func:`rendered_weights` >= ``min_weight``).
+    Only those shape that image, so only those can its pixels (and a flow loss on them) have taught."""
+    with torch.no_grad():
+        state = model.at(frame.time)
+    return rendered_weights(model, state, frame.camera) >= min_weight
 
 
 def _has_sample(truth: MotionGroundTruth, t: float) -> bool:
@@ -586,7 +624,8 @@ def _score_vertices(
         if err is not None:
             gathered[key].append(err)
         record[f"{key}_mae"] = None if err is None else _mean(err.norm(dim=-1))
-    return record, (found["hit"].nonzero().squeeze(1), found["gaussians"])
+    seen = seen_gaussians(model, frame)[found["gaussians"]]
+    return record, (found["hit"].nonzero().squeeze(1), found["gaussians"], seen)
 
 
 def _velocity_scores(

@@ -21,9 +21,13 @@ from pidg.data.motion_gt import FrameFlow, MotionObject, VertexMotion, read_moti
 from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.motion import (
     RADIUS_FRACTION,
+    SEEN_MIN_WEIGHT,
+    _tracking_text,
     default_radius,
     evaluate_flow_target,
     evaluate_motion,
+    rendered_weights,
+    seen_gaussians,
     target_flow_sums,
     velocity_per_dataset_time,
 )
@@ -79,18 +83,34 @@ class ConstantField(nn.Module):
         return self.v.to(means).expand(len(means), 3), means.new_zeros(len(means), 6)
 
 
-def plane_model(field_velocity: Tensor | None) -> DynamicGaussians:
-    """Opaque Gaussians on a grid in the plane z = Z covering the view (and beyond), translating with VELOCITY."""
+class FrontTranslation(Translation):
+    """Gaussians in front of the plane z = ``depth`` move by ``velocity * t``; those behind it stand still."""
+
+    def __init__(self, velocity: Tensor, depth: float) -> None:
+        super().__init__(velocity)
+        self.depth = depth
+
+    def deform(self, means, quats, log_scales, times, regularize=False) -> DeformedGaussians:
+        front = (means[:, 2:] < self.depth).to(means)
+        return DeformedGaussians(means + front * times.unsqueeze(-1) * self.velocity, quats, log_scales)
+
+
+def plane_model(field_velocity: Tensor | None, behind: float | None = None) -> DynamicGaussians:
+    """Opaque Gaussians on a grid in the plane z = Z covering the view (and beyond), translating with VELOCITY.
+    ``behind``: a second such grid at z = Z + behind, hidden by the first, that stands still."""
     xs = torch.linspace(-1.2, 1.2, 49)
     gx, gy = torch.meshgrid(xs, xs, indexing="ij")
     means = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.full((gx.numel(),), Z)], dim=-1)
+    if behind is not None:
+        means = torch.cat([means, means + torch.tensor([0.0, 0.0, behind])])
     n = len(means)
     quats = torch.zeros(n, 4)
     quats[:, 0] = 1
     gaussians = GaussianModel(means, quats, torch.full((n, 3), math.log(0.04)), torch.full((n,), 4.0),
                               torch.rand(n, 1, 3, generator=torch.Generator().manual_seed(0)), torch.zeros(n, 0, 3), sh_degree=0)
     field = None if field_velocity is None else ConstantField(field_velocity)
-    return DynamicGaussians(gaussians, Translation(VELOCITY), field, TimeAxis(S, 1.0 / S), torch.zeros(3), backend="cpu")
+    deformation = Translation(VELOCITY) if behind is None else FrontTranslation(VELOCITY, Z + 0.5 * behind)
+    return DynamicGaussians(gaussians, deformation, field, TimeAxis(S, 1.0 / S), torch.zeros(3), backend="cpu")
 
 
 def test_motion_velocity_is_the_central_difference_and_particle_velocity_its_physics_units():
@@ -109,12 +129,14 @@ CAMERA = Camera(torch.eye(4), 30.0, 30.0, W / 2, H / 2, W, H)
 EXPECTED_PX = (CAMERA.fx * VELOCITY[0] * DT / Z, CAMERA.fy * VELOCITY[1] * DT / Z)  # same for every Gaussian
 
 
-def write_truth(root, times=(0.25, 0.5), shift=(0.0, 0.0), scale=1, extra_vertex=False, v_gt=VELOCITY, second_speed=None):
+def write_truth(root, times=(0.25, 0.5), shift=(0.0, 0.0), scale=1, extra_vertex=False, v_gt=VELOCITY, second_speed=None,
+                behind=None):
     """Ground truth for the plane model: a constant flow (+ ``shift``) at ``scale`` x the image size, with a NaN
     band (no surface) and a band that is not dynamic; vertices at the Gaussians' positions (+ one far away).
     ``second_speed``: the second half of the vertices is a second object whose vertices move at that multiple of
-    VELOCITY (the flows stay the first object's)."""
-    model = plane_model(None)
+    VELOCITY (the flows stay the first object's). ``behind``: at the Gaussians of ``plane_model(..., behind)``, both
+    grids (their vertices all move with VELOCITY)."""
+    model = plane_model(None, behind)
     canonical = model.canonical().means.detach()[::5]
     if extra_vertex:
         canonical = torch.cat([canonical, torch.tensor([[0.0, 0.0, 50.0]])])
@@ -169,7 +191,7 @@ def test_matching_truth_gives_zero_error_and_zero_motion_gives_the_flow_size(tmp
     assert [r["view"] for r in data["per_frame"]] == ["test/r_0000", "test/r_0001"]
     assert set(result.columns()) == {"gt_motion_flow_epe", "gt_velocity_flow_epe", "gt_zero_motion_epe",
                                      "gt_velocity_rel_deformation", "gt_velocity_rel_field", "gt_coverage",
-                                     "gt_target_flow_epe", "gt_track_rel"}
+                                     "gt_target_flow_epe", "gt_track_rel", "gt_track_rel_seen"}
     assert result.target is None and result.columns()["gt_target_flow_epe"] is None
     track = result.tracking  # each anchor against the other sample time, 0.25 of dataset time away
     assert (track.anchors, track.samples, track.coverage) == (2, 2 * len(truth.vertices.positions[0]), 1.0)
@@ -193,6 +215,36 @@ def test_tracking_error_is_the_share_of_the_true_displacement_the_gaussians_miss
     assert track.relative == pytest.approx(abs(1.0 - follows), rel=1e-4)
     assert track.error == pytest.approx(abs(1.0 - follows) * track.travel, rel=1e-4)
     assert track.per_object == {"plane": pytest.approx(track.relative, rel=1e-9)}  # the truth's one object
+
+
+def test_rendered_weights_are_each_gaussians_share_of_the_image():
+    """Summed over the Gaussians, the weights are the render's alpha summed over its pixels; a Gaussian behind an
+    opaque layer, or outside the view, has (nearly) none, and so the view does not see it."""
+    model = plane_model(None, behind=0.5)
+    state = model.canonical()
+    weights = rendered_weights(model, state, CAMERA)
+    alpha = model.render_state(state, CAMERA).alpha.detach()
+    assert float(weights.sum()) == pytest.approx(float(alpha.sum()), rel=1e-4)
+    half = model.num_gaussians // 2
+    front, back = weights[:half], weights[half:]
+    assert float(back.max()) < 0.01 and float(front.max()) > 0.5  # ~0.56 px each where the front grid is in view
+    moved = state.means.detach().clone()
+    moved[0] = torch.tensor([5.0, 0.0, Z])  # far to the right of the view (its edge is at x = (W / 2) / fx x Z)
+    away = rendered_weights(model, DeformedGaussians(moved, state.quats, state.log_scales), CAMERA)
+    assert float(away[0]) == 0.0 and float(away.sum()) == pytest.approx(float(weights.sum() - weights[0]), rel=1e-3)
+    seen = seen_gaussians(model, Frame(CAMERA, 0.0, torch.zeros(H, W, 3, dtype=torch.uint8), name="v"))
+    assert torch.equal(seen, weights >= SEEN_MIN_WEIGHT) and not seen[model.num_gaussians // 2 :].any()
+
+
+def test_tracking_of_the_seen_gaussians_leaves_out_those_behind_the_surface(tmp_path):
+    """The front grid follows its vertices, the hidden one behind it stands still while its vertices move: the
+    tracking over all matches misses the hidden grid's half of the travel, over the seen ones nothing."""
+    truth, frames = write_truth(tmp_path, times=(0.25, 0.5, 0.75), behind=0.5)
+    track = evaluate_motion(plane_model(None, behind=0.5), frames, truth).tracking
+    assert track.seen_relative == pytest.approx(0.0, abs=1e-5)
+    assert 0.3 < track.seen_share < 0.5  # the front grid's matches in view (its rows past the image's edges are not)
+    assert track.relative == pytest.approx(0.5, abs=0.03)  # half the matches, the hidden grid's, miss all their travel
+    assert "whose Gaussian the view sees: 0.000" in _tracking_text(track)
 
 
 def test_tracking_is_also_scored_per_object(tmp_path):
