@@ -394,10 +394,9 @@ def default_radius(truth: MotionGroundTruth) -> float:
 
 
 @torch.no_grad()
-def _velocity_at(model: DynamicGaussians, t: float, points: Tensor, radius: float, h: float) -> dict[str, Tensor]:
+def _velocity_at(model: DynamicGaussians, t: float, means: Tensor, points: Tensor, radius: float, h: float) -> dict[str, Tensor]:
     """Matched-vertex mask, the matched Gaussians and their distances, and the two model velocities (dataset time)
-    at the matched vertices."""
-    means = model.at(t).means
+    at the matched vertices; ``means``: the Gaussians' centres at t."""
     idx, dist = nearest_gaussians(points, means)
     hit = dist <= radius
     idx = idx[hit]
@@ -576,12 +575,12 @@ def rendered_weights(model: DynamicGaussians, state: DeformedGaussians, camera: 
     return weights[:, 0]
 
 
-def seen_gaussians(model: DynamicGaussians, frame: Frame, min_weight: float = SEEN_MIN_WEIGHT) -> Tensor:
-    """[N] bool: the Gaussians that ``frame``'s view at its time sees (:func:`rendered_weights` >= ``min_weight``).
-    Only those shape that image, so only those can its pixels (and a flow loss on them) have taught."""
-    with torch.no_grad():
-        state = model.at(frame.time)
-    return rendered_weights(model, state, frame.camera) >= min_weight
+def seen_gaussians(
+    model: DynamicGaussians, state: DeformedGaussians, camera: Camera, min_weight: float = SEEN_MIN_WEIGHT
+) -> Tensor:
+    """[N] bool: the Gaussians placed at some time (``state``) that ``camera`` sees (:func:`rendered_weights` >=
+    ``min_weight``). Only those shape that image, so only those can its pixels (and a flow loss on them) have taught."""
+    return rendered_weights(model, state, camera) >= min_weight
 
 
 def _has_sample(truth: MotionGroundTruth, t: float) -> bool:
@@ -602,7 +601,8 @@ def _score_vertices(
     k = truth.vertices.index_of(t, _TIME_TOL)
     points = torch.from_numpy(truth.vertices.positions[k]).to(model.device)
     v_gt = torch.from_numpy(truth.vertices.velocities[k]).to(model.device)
-    found = _velocity_at(model, t, points, radius, h)
+    state = model.at(t)
+    found = _velocity_at(model, t, state.means, points, radius, h)
     speed = v_gt[found["hit"]].norm(dim=-1)
     gathered["speed_all"].append(v_gt.norm(dim=-1))
     gathered["speed"].append(speed)
@@ -624,7 +624,7 @@ def _score_vertices(
         if err is not None:
             gathered[key].append(err)
         record[f"{key}_mae"] = None if err is None else _mean(err.norm(dim=-1))
-    seen = seen_gaussians(model, frame)[found["gaussians"]]
+    seen = seen_gaussians(model, state, frame.camera)[found["gaussians"]]
     return record, (found["hit"].nonzero().squeeze(1), found["gaussians"], seen)
 
 

@@ -232,8 +232,8 @@ def test_rendered_weights_are_each_gaussians_share_of_the_image():
     moved[0] = torch.tensor([5.0, 0.0, Z])  # far to the right of the view (its edge is at x = (W / 2) / fx x Z)
     away = rendered_weights(model, DeformedGaussians(moved, state.quats, state.log_scales), CAMERA)
     assert float(away[0]) == 0.0 and float(away.sum()) == pytest.approx(float(weights.sum() - weights[0]), rel=1e-3)
-    seen = seen_gaussians(model, Frame(CAMERA, 0.0, torch.zeros(H, W, 3, dtype=torch.uint8), name="v"))
-    assert torch.equal(seen, weights >= SEEN_MIN_WEIGHT) and not seen[model.num_gaussians // 2 :].any()
+    seen = seen_gaussians(model, state, CAMERA)
+    assert torch.equal(seen, weights >= SEEN_MIN_WEIGHT) and not seen[half:].any()
 
 
 def test_tracking_of_the_seen_gaussians_leaves_out_those_behind_the_surface(tmp_path):
