@@ -97,7 +97,9 @@ def run_step_bench(
 
 
 def _load_trained_model(trainer: Trainer, checkpoint: Path, log: Callable[[str], None] = print) -> None:
-    """Replace a fresh trainer's Gaussians and deformation by a checkpoint's (optimiser state starts fresh).
+    """Replace a fresh trainer's Gaussians and deformation by a checkpoint's, with the run's optimiser moments for
+    them: the timed steps then cost what that run's steps cost (fresh moments hide, e.g., the denormal ones a long
+    run accumulates, ``TrainConfig.flush_denormals``: 8 against 24 ms of optimiser a step, measured).
 
     A deformation of another shape (a run trained with other grid or layer sizes) is left freshly initialised, and
     said so: the step then renders the canonical positions, which need not cost what the trained deformed ones do
@@ -110,13 +112,18 @@ def _load_trained_model(trainer: Trainer, checkpoint: Path, log: Callable[[str],
     model.gaussians.load_state_dict(saved["gaussians"])
     current = model.deformation.state_dict()
     deformation = saved["deformation"]
-    if set(deformation) == set(current) and all(deformation[k].shape == current[k].shape for k in current):
+    same_deformation = set(deformation) == set(current) and all(deformation[k].shape == current[k].shape for k in current)
+    if same_deformation:
         model.deformation.load_state_dict(deformation)
     else:
         log(f"{checkpoint}: its deformation has other sizes than the configured one; timing a fresh (untrained) deformation, not representative")
     if model.material_field is not None and model.material_field.num_particles < model.gaussians.num_particles:
         raise ValueError(f"{checkpoint}: its Gaussians descend from more particles than the fresh material field has rows")
     trainer.reset_optimization()
+    moments = state["optimizers"]
+    for name, optimizer in trainer.optimizers.items():  # the material field's stay fresh, as the field itself
+        if name in moments and (name != "deformation" or same_deformation):
+            optimizer.load_state_dict(moments[name])
     trainer.step = int(state["step"])
 
 

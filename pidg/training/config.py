@@ -178,6 +178,15 @@ class TrainConfig:
     parallel torch operation paid ~0.1 ms of thread wake-up (OMP_WAIT_POLICY=PASSIVE), more than most of a step's
     small operations compute, and one thread made the step x1.10 (base) and x1.16 (full method) faster although its
     matrix products ran x1.3-1.5 slower (which ``cpu_matmul_threads`` gives back). Restored when training returns."""
+    flush_denormals: bool = True
+    """Flush denormal floats (magnitudes below 1.2e-38) to zero while training (``torch.set_flush_denormal``: the x86
+    FTZ/DAZ modes of the training thread, where the optimisers run; restored when training returns). Adam's first
+    moment of an entry whose gradient stays exactly zero (a hash-table row no Gaussian reaches, a weight behind an
+    idle ReLU unit) decays by 0.9 a step into the denormal range, where 1-4 units of the last place are fixed points
+    of that decay (round to nearest) and never reach zero: a default bouncingballs run ended with 31-49 % of its
+    hash tables' moments denormal, and the processor's slow path on them tripled the optimiser's time (24-26 against
+    8.5 ms a step, whole step x1.14-1.22, measured resuming that run). The flushed values are below any update's
+    resolution: an entry's update moves by under 1e-38 times the learning rate."""
     cpu_matmul_threads: Annotated[int, NON_NEGATIVE] = 0
     """Threads for the networks' matrix products (forward and backward) while a CPU run trains with
     ``cpu_torch_threads`` (0: torch's count when training starts, by default one per core): products parallelise

@@ -291,9 +291,11 @@ class Trainer:
         budget = None if cfg.optim.time_budget_minutes is None else 60.0 * cfg.optim.time_budget_minutes
         fitting = iterations is None and budget is not None and cfg.optim.time_budget_policy in ("fit", "fill")
         stopped_by = None
-        torch_threads = torch.get_num_threads()
+        torch_threads, flushed = torch.get_num_threads(), denormals_flushed()
         on_cpu_threads = self.device.type == "cpu" and bool(cfg.cpu_torch_threads)  # torch's own ops on that many threads
         products_threads = (cfg.cpu_matmul_threads or torch_threads) if on_cpu_threads else None
+        if cfg.flush_denormals:
+            torch.set_flush_denormal(True)
         try:
             with _GracefulInterrupt() as interrupt, matmul_threads(products_threads):
                 while self.step < total:
@@ -346,6 +348,7 @@ class Trainer:
             ) from err
         finally:
             torch.set_num_threads(torch_threads)
+            torch.set_flush_denormal(flushed)
             bar.close()
             if writer is not None:
                 writer.close()
@@ -548,6 +551,13 @@ class Trainer:
         trainer._load_optimization_state(state)
         trainer.last_good_step = trainer.step  # this run's own checkpoint: where a failure rolls back to
         return trainer
+
+
+def denormals_flushed() -> bool:
+    """Whether this thread's float arithmetic flushes denormals to zero (``torch.set_flush_denormal``, which has no
+    getter): a one-element product, computed on the calling thread, of the smallest normal float32 and 0.5."""
+    tiny = torch.tensor([torch.finfo(torch.float32).tiny])
+    return bool((tiny * 0.5).item() == 0.0)
 
 
 def _split_features(features: Tensor | None, slices: dict[str, slice]) -> dict[str, Tensor]:

@@ -5,11 +5,16 @@ import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 import dataclasses
 import json
 
-from pidg.bench.step import run_step_bench
+import torch
+
+from pidg.bench.step import _load_trained_model, run_step_bench
+from pidg.checkpoint import CHECKPOINT_FILE
+from pidg.data import load_scene
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.models.deformation import HashGridConfig
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.training.config import TrainConfig
+from pidg.training.trainer import Trainer
 
 
 def test_step_bench_times_steady_state_steps(tmp_path, monkeypatch):
@@ -39,3 +44,29 @@ def test_step_bench_times_steady_state_steps(tmp_path, monkeypatch):
     assert "flow" not in results["base"]["step_breakdown_ms"]
     # base: one render per step; full: one per training frame to start from (its kept depths), then one per step
     assert len(renders) == 2 * (warmup + iterations) + n_train
+
+
+def test_step_bench_from_a_run_starts_from_its_optimiser_moments(tmp_path):
+    """``--from-run`` takes the run's Adam moments with its Gaussians and deformation (a long run's moments cost what
+    fresh ones do not: its denormal ones), and leaves a field the run did not have (the material field) fresh."""
+    root = write_procedural_dataset(
+        ProceduralSceneConfig(n_train=4, n_test=1, width=24, height=24, n_gaussians=500, n_init_points=100), tmp_path / "scene"
+    )
+    cfg = TrainConfig(device="cpu")
+    cfg.data = dataclasses.replace(cfg.data, path=root, progress=False)
+    cfg.deformation.grid4d = dataclasses.replace(
+        cfg.deformation.grid4d, spatial_grid=HashGridConfig(4, 2, 12, 4, 64), temporal_grid=HashGridConfig(4, 2, 12, 4, 16), width=16
+    )
+    cfg.optim = dataclasses.replace(cfg.optim, iterations=3)
+    cfg.output = dataclasses.replace(cfg.output, dir=tmp_path / "run", progress=False, preview_every=0)
+    scene = load_scene(cfg.data)
+    run = Trainer(cfg, scene)
+    run.train()
+    full = dataclasses.replace(cfg, physics=dataclasses.replace(cfg.physics, kind="cmr"), output=dataclasses.replace(cfg.output, dir=tmp_path / "bench"))
+    trainer = Trainer(full, scene)
+    _load_trained_model(trainer, tmp_path / "run" / CHECKPOINT_FILE, log=lambda _: None)
+    for name in ("means", "sh_dc", "deformation"):
+        saved, loaded = run.optimizers[name].optimizer.state_dict()["state"], trainer.optimizers[name].optimizer.state_dict()["state"]
+        assert saved.keys() == loaded.keys() and len(saved) > 0
+        assert all(torch.equal(saved[k]["exp_avg"], loaded[k]["exp_avg"]) for k in saved)
+    assert "material" in trainer.optimizers and not trainer.optimizers["material"].optimizer.state

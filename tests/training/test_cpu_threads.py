@@ -1,4 +1,5 @@
-"""A CPU run's torch thread count (``TrainConfig.cpu_torch_threads``) holds during its steps and no longer."""
+"""A CPU run's torch thread count (``TrainConfig.cpu_torch_threads``) and its denormal flushing
+(``TrainConfig.flush_denormals``) hold during its steps and no longer."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
 import dataclasses
@@ -7,7 +8,8 @@ import pytest
 import torch
 
 from pidg.models import parallel_linear
-from pidg.training.trainer import Trainer
+from pidg.training.optim import adam
+from pidg.training.trainer import Trainer, denormals_flushed
 
 
 @pytest.mark.parametrize("threads", [1, 0])
@@ -43,3 +45,45 @@ def test_cpu_steps_run_the_networks_products_on_cpu_matmul_threads(small_scene, 
         assert seen == [expected] * 2 and parallel_linear._threads is None
     finally:
         torch.set_num_threads(caller)
+
+
+@pytest.mark.parametrize(("flush", "caller_flushes"), [(True, False), (False, False), (True, True), (False, True)])
+def test_training_flushes_denormals_during_its_steps_and_gives_the_caller_its_mode_back(
+    small_scene, small_config, tmp_path, flush, caller_flushes
+):
+    """``flush_denormals`` holds during every step (False: the caller's mode, untouched); train() restores the
+    caller's mode when it returns."""
+    trainer = Trainer(dataclasses.replace(small_config(tmp_path, 2), flush_denormals=flush), small_scene)
+    seen: list[bool] = []
+    step = trainer.train_step
+    trainer.train_step = lambda **kw: (seen.append(denormals_flushed()), step(**kw))[1]  # type: ignore[method-assign]
+    try:
+        torch.set_flush_denormal(caller_flushes)
+        trainer.train()
+        assert seen == [flush or caller_flushes] * 2 and denormals_flushed() == caller_flushes
+    finally:
+        torch.set_flush_denormal(False)
+
+
+@pytest.mark.parametrize("flush", [False, True])
+def test_adams_first_moment_of_a_zero_gradient_sticks_in_the_denormal_range_unless_flushed(flush):
+    """Why training flushes: after its gradient stops, an entry's first moment decays by beta1 = 0.9 a step; in the
+    denormal range a few units of the last place are fixed points of that (round to nearest), so it never reaches
+    zero, and every later update computes on a denormal. Flushed, it is exactly zero once it leaves float32's
+    normal range."""
+    tiny = torch.finfo(torch.float32).tiny
+    weight = torch.nn.Parameter(torch.ones(4))
+    optimizer = adam([{"params": [weight], "lr": 1e-3}], betas=(0.9, 0.999), eps=1e-15)
+    try:
+        torch.set_flush_denormal(flush)
+        for step in range(1200):  # 0.9 ** 1200 * 1e-2 ~ 1e-57: far below the smallest denormal, 1.4e-45
+            weight.grad = torch.full((4,), 1e-2 if step == 0 else 0.0)
+            optimizer.step()
+        moment = optimizer.state[weight]["exp_avg"]
+        if flush:
+            assert torch.all(moment == 0)
+        else:
+            assert torch.all((moment != 0) & (moment.abs() < tiny))
+        assert torch.isfinite(weight).all()
+    finally:
+        torch.set_flush_denormal(False)
