@@ -1,16 +1,19 @@
-"""float32 building blocks for pidg's numba kernels: the arrays they take, and arithmetic that keeps their loops
-vectorisable (no libm call, no branch).
+"""float32 building blocks for pidg's numba kernels: the arrays they take (and the zeroed buffers they fill sparsely),
+and arithmetic that keeps their loops vectorisable (no libm call, no branch).
 
 numba compiles ``math.exp`` to a scalar libm call per element (no SVML here), which stops a loop from being
 vectorised; these helpers build the same results from arithmetic and bit operations that LLVM vectorises.
 """
 from __future__ import annotations
 
+import sys
+import threading
+
 import llvmlite.ir
 import numba
 import numpy as np
 import torch
-from numba import njit
+from numba import njit, prange
 from numba.extending import intrinsic
 from torch import Tensor
 
@@ -27,6 +30,45 @@ def float32_array(t: Tensor) -> np.ndarray:
     if t.dtype == torch.float32 and t.device.type == "cpu" and t.is_contiguous():
         return (t.detach() if t.requires_grad else t).numpy()
     return t.detach().to(torch.float32).contiguous().numpy()
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def _zero(flat):  # pragma: no cover - compiled
+    for i in prange(flat.shape[0]):
+        flat[i] = 0.0
+
+
+class ZeroedBufferPool:
+    """Reusable zeroed float32 buffers for kernels that fill a large array sparsely (a hash table's gradient, a render's
+    extra channels at a few pixels, their gradient).
+
+    A fresh 49 MB ``np.zeros`` per backward pass (Grid4D's spatial table) costs page faults on first touch: 6 ms
+    of a 20 ms backward when the machine is quiet and up to 60 ms when it is not (measured); re-zeroing a buffer
+    in place takes 1.3 ms. A buffer handed out as a gradient is reused only once nothing else refers to it
+    (its tensor, e.g. a parameter's ``.grad``, was released), so a gradient still in use is never overwritten.
+    """
+
+    def __init__(self, per_shape: int = 4) -> None:
+        self.per_shape = per_shape
+        self._buffers: dict[tuple[int, ...], list[np.ndarray]] = {}
+        self._lock = threading.Lock()
+
+    def zeros(self, *shape: int) -> np.ndarray:
+        """A zeroed C-contiguous float32 array of ``shape``."""
+        with self._lock:
+            pool = self._buffers.setdefault(shape, [])
+            for i in range(len(pool)):
+                if sys.getrefcount(pool[i]) == _UNREFERENCED:  # only the pool holds it
+                    _zero(pool[i].reshape(-1))
+                    return pool[i]
+            buf = np.zeros(shape, dtype=np.float32)
+            if len(pool) < self.per_shape:
+                pool.append(buf)
+            return buf
+
+
+_UNREFERENCED = 2  # sys.getrefcount of an array held only by the pool's list: the list and the call's argument
+ZEROED_BUFFERS = ZeroedBufferPool()  # the process's pool
 
 
 @intrinsic

@@ -5,7 +5,7 @@
 * Deformation field and material field: Adam over their parameter groups (hash grids / planes get a multiple of
   the network rate), decayed x0.1 per ``OptimConfig.deformation_lr_decay_every`` steps, applied smoothly. The
   deformation's optimizer waits for the end of the static warm-up. The material field's index embedding has a
-  sparse gradient and gets ``SparseAdam``.
+  sparse gradient and gets ``SparseAdam`` (torch's, its CPU update fused: :mod:`pidg.training.sparse_adam`).
 
 The scene model supplies the parameters (``GaussianModel.params``, ``parameter_groups()`` of its fields); nothing
 below the training layer builds an optimizer.
@@ -23,6 +23,7 @@ from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.gaussians import GaussianModel
 from pidg.models.material_field import GROUP_EMBEDDING
 from pidg.training.config import GaussianOptimConfig, TrainConfig
+from pidg.training.sparse_adam import SparseAdam
 
 #: (step, a parameter group's base learning rate) -> the group's learning rate at that step
 Schedule = Callable[[int, float], float]
@@ -154,6 +155,6 @@ def make_optimizers(model: DynamicGaussians, config: TrainConfig, scene_extent: 
         # (measured: +24 ms per step at P = 200k). SparseAdam also leaves rows that were not sampled untouched.
         sparse = _groups(field_groups, {GROUP_EMBEDDING: o.material_embedding_lr}, "material_")
         if sparse:
-            out["material_embedding"] = ScheduledOptimizer(torch.optim.SparseAdam(sparse, betas=BETAS, eps=EPS),
+            out["material_embedding"] = ScheduledOptimizer(SparseAdam(sparse, betas=BETAS, eps=EPS),
                                                            schedule_for("material_embedding", config, scene_extent))
     return out

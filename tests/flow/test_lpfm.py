@@ -181,3 +181,27 @@ def test_the_loss_at_its_supervised_pixels_equals_the_loss_on_the_whole_image(ch
     assert torch.allclose(sparse_grad, dense_grad, atol=1e-7) and dense_grad.abs().sum() > 0
     with pytest.raises(ValueError, match="share their leading shape"):
         decode_flows_at(features[valid], alpha[valid][:-1], torch.zeros(int(valid.sum()), 2))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_pixel_rows_is_index_select_with_its_gradient(dtype):
+    """pixel_rows (the flow loss's gather of supervised pixels) against index_select: values and gradients equal, and
+    a gradient still held is not overwritten by the next backward (on float32 CPU the gradient is a pooled buffer)."""
+    from pidg.flow.model_flow import pixel_rows
+
+    g = torch.Generator().manual_seed(5)
+    image = torch.randn(H * W, 3, generator=g, dtype=dtype, requires_grad=True)
+    index = torch.randperm(H * W, generator=g)[: H * W // 3]
+    weights = [torch.randn(index.numel(), 3, generator=g, dtype=dtype) for _ in range(2)]
+    rows = pixel_rows(image, index)
+    assert torch.equal(rows, image.index_select(0, index))
+    (first,) = torch.autograd.grad((rows * weights[0]).sum(), image)
+    kept = first.clone()
+    (second,) = torch.autograd.grad((pixel_rows(image, index) * weights[1]).sum(), image)
+    (reference,) = torch.autograd.grad((image.index_select(0, index) * weights[1]).sum(), image)
+    assert torch.equal(second, reference) and torch.equal(first, kept)  # the held gradient is intact
+    assert not torch.equal(first, second)
+    del first, second
+    (third,) = torch.autograd.grad((pixel_rows(image, index[:5]) * weights[0][:5]).sum(), image)
+    (reference,) = torch.autograd.grad((image.index_select(0, index[:5]) * weights[0][:5]).sum(), image)
+    assert torch.equal(third, reference)  # a reused buffer is zero outside the new rows

@@ -134,7 +134,10 @@ def test_cache_layout_and_contents(scene: SceneData, tmp_path: Path):
         np.testing.assert_allclose(cache.pair(1).forward.numpy(), data["forward"], atol=0.02)  # float16 in memory
     pair = cache.pair(1)
     assert pair.frame0 is scene.train[1] and pair.frame1 is scene.train[2]
+    assert "forward" not in vars(pair) and "backward" not in vars(pair)  # nothing converted until read
     assert pair.forward.dtype == torch.float32 and pair.valid_forward.dtype == torch.bool
+    assert pair.forward is pair.forward and torch.equal(pair.forward, cache.forward[1].float())  # converted once
+    assert torch.equal(pair.backward, cache.backward[1].float())
     assert pair.dt == pytest.approx(scene.train[2].time - scene.train[1].time)
     assert cache.pair_starting_at(scene.train[2]).index == 2
     assert cache.pair_starting_at(scene.train[3]) is None

@@ -31,8 +31,6 @@ Two implementations behind ``hash_encode``:
 """
 from __future__ import annotations
 
-import sys
-import threading
 from dataclasses import dataclass, field
 from typing import Annotated, Literal, get_args
 
@@ -43,7 +41,7 @@ from numba import njit, prange
 from torch import Tensor, nn
 
 from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, Range, validate_config
-from pidg.kernel_math import float32_array
+from pidg.kernel_math import ZEROED_BUFFERS, float32_array
 
 HASH_PRIMES = (1, 2654435761, 805459861)
 #: Which hash-encoding implementation runs: "cpu" (numba kernel), "torch" (reference, any device), "auto" (by device).
@@ -392,41 +390,6 @@ def _encode_backward_coords(u, table, grad_out, scales, sizes, offsets, hashed, 
                     grad_u[start + k, d] = total[d, k]
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _zero(flat):  # pragma: no cover - compiled
-    for i in prange(flat.shape[0]):
-        flat[i] = 0.0
-
-
-class _GradBufferPool:
-    """Reusable zeroed table-gradient buffers.
-
-    A fresh 49 MB ``np.zeros`` per backward pass (Grid4D's spatial table) costs page faults on first touch: 6 ms
-    of a 20 ms backward when the machine is quiet and up to 60 ms when it is not (measured); re-zeroing a buffer
-    in place takes 1.3 ms. A buffer handed out as a gradient is reused only once nothing else refers to it
-    (its tensor, e.g. a parameter's ``.grad``, was released), so a gradient still in use is never overwritten.
-    """
-
-    def __init__(self, per_shape: int = 4) -> None:
-        self.per_shape = per_shape
-        self._buffers: dict[tuple[int, int], list[np.ndarray]] = {}
-        self._lock = threading.Lock()
-
-    def zeros(self, rows: int, cols: int) -> np.ndarray:
-        with self._lock:
-            pool = self._buffers.setdefault((rows, cols), [])
-            for i in range(len(pool)):
-                if sys.getrefcount(pool[i]) == _UNREFERENCED:  # only the pool holds it
-                    _zero(pool[i].reshape(-1))
-                    return pool[i]
-            buf = np.zeros((rows, cols), dtype=np.float32)
-            if len(pool) < self.per_shape:
-                pool.append(buf)
-            return buf
-
-
-_UNREFERENCED = 2  # sys.getrefcount of an array held only by the pool's list: the list and the call's argument
-_GRAD_BUFFERS = _GradBufferPool()
 
 
 def _f32_rows(t: Tensor) -> np.ndarray:
@@ -474,7 +437,7 @@ class _HashEncodeCPU(torch.autograd.Function):
         consts = (layout.scales, layout.sizes, layout.offsets, layout.hashed, layout.table_size)
         grad_coords = grad_table = None
         if ctx.needs_input_grad[1]:
-            g_tab = _GRAD_BUFFERS.zeros(layout.n_rows, layout.n_features)
+            g_tab = ZEROED_BUFFERS.zeros(layout.n_rows, layout.n_features)
             with numba.parallel_chunksize(1):  # hashed levels cost more than dense ones: hand levels out singly
                 _encode_backward_table(u, g, *consts, g_tab)
             grad_table = torch.from_numpy(g_tab).to(table.dtype)
@@ -585,7 +548,7 @@ class _HashEncodeSmoothCPU(torch.autograd.Function):
         if ctx.needs_input_grad[3]:
             g_all = np.empty((u.shape[1], layout.out_dim), dtype=np.float32)
             _smoothness_gradient(g_main, ctx.change, np.float32(2.0 * float(grad_term)), ctx.rows, g_all)
-            g_tab = _GRAD_BUFFERS.zeros(layout.n_rows, layout.n_features)
+            g_tab = ZEROED_BUFFERS.zeros(layout.n_rows, layout.n_features)
             with numba.parallel_chunksize(1):
                 _encode_backward_table(u, g_all, *consts, g_tab)
             grad_table = torch.from_numpy(g_tab).to(table.dtype)
