@@ -46,7 +46,15 @@ from pidg.flow.model_flow import (
     supervised_flow_channels,
     supervised_flow_loss,
 )
-from pidg.flow.preprocess import FlowCache, FlowPair, open_flow_cache, preprocess_flow, run_preprocess
+from pidg.flow.preprocess import (
+    FlowCache,
+    FlowPair,
+    check_flow_viewpoints,
+    median_view_change,
+    open_flow_cache,
+    preprocess_flow,
+    run_preprocess,
+)
 
 __all__ = [
     "FLOW_CHANNELS",
@@ -56,6 +64,8 @@ __all__ = [
     "VelocityIntegration",
     "FlowEstimatorUnavailable",
     "FlowPair",
+    "check_flow_viewpoints",
+    "median_view_change",
     "FlowTarget",
     "LPFMResult",
     "decode_depth_changes",

@@ -96,6 +96,12 @@ class FlowConfig:
     target_refresh_steps: Annotated[int, AT_LEAST_ONE] = 300
     """Most steps the rendered depth behind a pair's flow target may be old: the target is rebuilt from frame t+1's
     latest training render when that is younger, else from a render of its own."""
+    max_view_change: Annotated[float, Range(0, 180)] = 30.0
+    """Degrees: the flow loss is refused on data whose consecutive training views (by time) turn by more than this at
+    the median. Optical flow between two views is motion only when they are close: a video's camera turns a few
+    degrees a frame (the generated orbits ~6), D-NeRF's synthetic captures jump (median 65-74 degrees), where the
+    flow target is hundreds of pixels of noise (training PSNR ~16 on bouncingballs) and the paper trains without
+    LPFM. 180 turns the check off."""
     tile_fraction: Annotated[float, Range(0, 1, lo_open=True)] = 1.0
     """Share of the 16x16 pixel tiles holding supervised pixels that the loss reads at a step, drawn at random each
     step (1: every tile). The loss is the mean over the drawn tiles' pixels, a sample of the full one, and only the

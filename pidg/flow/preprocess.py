@@ -349,6 +349,28 @@ def flow_summary(cache: FlowCache) -> dict[str, Any]:
     }
 
 
+def median_view_change(frames: list[Frame]) -> float:
+    """Median angle in degrees between the viewing directions of consecutive frames, in time order (0 for fewer
+    than two frames): how far the camera turns between the two images of a flow pair."""
+    ordered = sorted(frames, key=lambda f: f.time)
+    if len(ordered) < 2:
+        return 0.0
+    directions = torch.stack([f.camera.world_to_camera[2, :3].double().cpu() for f in ordered])  # camera z in world
+    cosines = (directions[1:] * directions[:-1]).sum(dim=-1).clamp(-1.0, 1.0)
+    return float(torch.rad2deg(torch.acos(cosines)).median())
+
+
+def check_flow_viewpoints(scene: SceneData, config: FlowConfig) -> None:
+    """Refuse the flow loss on data whose consecutive training views jump (``FlowConfig.max_view_change``)."""
+    change = median_view_change(scene.train)
+    if change > config.max_view_change:
+        raise ValueError(
+            f"--flow lpfm: {scene.root}'s consecutive training views turn by {change:.0f} degrees at the median (more "
+            f"than --flow.max_view_change {config.max_view_change:g}): their optical flow is not the scene's motion "
+            "(D-NeRF-style captures jump between viewpoints; the paper trains them without LPFM): use --flow none"
+        )
+
+
 def open_flow_cache(scene: SceneData, config: FlowConfig, fallback_dir: Path, progress: bool = True) -> FlowCache:
     """The scene's flow cache, computed where missing: next to the dataset, or in ``fallback_dir`` (e.g. the run
     folder) when the dataset folder is missing or read-only. Flows are estimated from the images on the CPU; the

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from numba import njit
 from torch import Tensor
+from torch.autograd.graph import increment_version
 
 f32 = np.float32
 
@@ -101,4 +102,5 @@ class SparseAdam(torch.optim.SparseAdam):
                 state["exp_avg"].numpy(), state["exp_avg_sq"].numpy(), f32(1 - beta1), f32(1 - beta2),
                 f32(group["eps"]), f32(-step_size),
             )
+            increment_version(p)  # written through numpy: tell autograd, as torch's in-place update would
         return loss

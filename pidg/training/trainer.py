@@ -39,7 +39,7 @@ from pidg.config_tools import from_jsonable, save_config, to_jsonable
 from pidg.data.scene import Frame, SceneData
 from pidg.device import describe, peak_memory_mb, rasterizer_for, resolve_device, synchronize
 from pidg.errors import NonFiniteError, TrainingFailed
-from pidg.flow import FlowCache, open_flow_cache
+from pidg.flow import FlowCache, check_flow_viewpoints, open_flow_cache
 from pidg.metrics import psnr
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.parallel_linear import matmul_threads
@@ -110,6 +110,7 @@ class Trainer:
         self.optimizers = make_optimizers(self.model, config, self.extent)
         self.flow_cache: FlowCache | None = None
         if config.flow.enabled:
+            check_flow_viewpoints(self.scene, config.flow)
             self.flow_cache = open_flow_cache(self.scene, config.flow, Path(config.output.dir) / "flow_cache", config.output.progress)
         self.loss_terms: list[LossTerm] = build_loss_terms(config, self.flow_cache)
         self.strategy = DensificationStrategy(config.densify, self.extent)

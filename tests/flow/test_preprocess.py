@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -222,3 +223,42 @@ def test_raft_runs_a_local_exported_program(tmp_path: Path):
     flow = estimator(np.zeros((30, 45, 3), np.uint8), np.zeros((30, 45, 3), np.uint8))
     assert flow.shape == (30, 45, 2) and np.allclose(flow, 1.5)
     assert len(estimator.settings["weights_sha1"]) == 40
+
+
+def _orbit_frames(angles_deg: list[float]) -> list:
+    """Frames at times 0..1 whose cameras look at the origin from the horizon at the given azimuths."""
+    from pidg.data.scene import Frame
+    from pidg.render.camera import Camera
+
+    frames = []
+    for k, angle in enumerate(angles_deg):
+        a = math.radians(angle)
+        camera = Camera.look_at((4 * math.cos(a), 4 * math.sin(a), 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 8, 8, 1.0)
+        frames.append(Frame(camera, k / max(len(angles_deg) - 1, 1), torch.zeros(8, 8, 3, dtype=torch.uint8), name=f"f{k}"))
+    return frames
+
+
+def test_median_view_change_is_the_angle_between_consecutive_views_in_time_order():
+    from pidg.flow import median_view_change
+
+    orbit = _orbit_frames([5.0 * k for k in range(12)])  # a video: 5 degrees a frame
+    assert median_view_change(orbit) == pytest.approx(5.0, abs=1e-3)
+    assert median_view_change(list(reversed(orbit))) == pytest.approx(5.0, abs=1e-3)  # ordered by time, not by list
+    jumping = _orbit_frames([0.0, 90.0, 10.0, 170.0, 20.0, 100.0, 30.0])  # D-NeRF-like: views jump
+    assert median_view_change(jumping) == pytest.approx(80.0, abs=1e-3)
+    assert median_view_change(orbit[:1]) == 0.0
+
+
+def test_the_trainer_refuses_the_flow_loss_where_consecutive_views_jump(tmp_path: Path):
+    """One line naming the dataset, the measured turn and the option; the same data trains with the check off."""
+    from pidg.training.config import TrainConfig
+    from pidg.training.trainer import Trainer
+
+    scene = make_procedural_scene(ProceduralSceneConfig(n_train=6, n_test=2, width=24, height=24, n_gaussians=600, n_init_points=150))
+    cfg = TrainConfig()
+    cfg.flow = replace(cfg.flow, kind="lpfm")  # six frames orbit once: ~60 degrees between flow pairs
+    cfg.output = replace(cfg.output, dir=tmp_path / "run", progress=False)
+    with pytest.raises(ValueError, match=r"--flow lpfm: .*turn by \d+ degrees at the median .*--flow.max_view_change 30.*--flow none"):
+        Trainer(cfg, scene)
+    cfg.flow = replace(cfg.flow, max_view_change=180.0)
+    assert Trainer(cfg, scene).flow_cache is not None

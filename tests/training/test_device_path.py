@@ -34,7 +34,7 @@ def device_agnostic_config(out_dir, iterations: int) -> TrainConfig:
     )
     cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=64, block_size=32)
     cfg.material = dataclasses.replace(cfg.material, width=16, embedding_dim=8)
-    cfg.flow = dataclasses.replace(cfg.flow, kind="lpfm")
+    cfg.flow = dataclasses.replace(cfg.flow, kind="lpfm", max_view_change=180.0)  # a 6-frame orbit: the machinery only
     cfg.gaussians = dataclasses.replace(cfg.gaussians, init_opacity=0.8)
     cfg.densify = dataclasses.replace(cfg.densify, start=2, stop=6, every=2, opacity_reset_every=1000)
     cfg.optim = dataclasses.replace(cfg.optim, iterations=iterations)

@@ -59,6 +59,7 @@ def test_takes_the_kernel_on_float32_cpu(monkeypatch):
     start = torch.randn(16, 4)
     param, state = _run(SparseAdam, start, _lookup_grads(16, 4, steps=2, lookups=9))
     assert state["step"] == 2 and not torch.equal(param, start)
+    assert param._version == 2  # each update counted, as torch's in-place one is (a saved tensor is not silently stale)
 
 
 def test_falls_back_to_torch_elsewhere():
