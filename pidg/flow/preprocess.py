@@ -350,19 +350,18 @@ def flow_summary(cache: FlowCache) -> dict[str, Any]:
 
 
 def median_view_change(frames: list[Frame]) -> float:
-    """Median angle in degrees between the viewing directions of consecutive frames, in time order (0 for fewer
-    than two frames): how far the camera turns between the two images of a flow pair."""
-    ordered = sorted(frames, key=lambda f: f.time)
-    if len(ordered) < 2:
+    """Median angle in degrees between the viewing directions of consecutive ``frames`` (0 for fewer than two): for
+    the training frames in time order (:func:`sorted_training_frames`), how far the camera turns within a flow pair."""
+    if len(frames) < 2:
         return 0.0
-    directions = torch.stack([f.camera.world_to_camera[2, :3].double().cpu() for f in ordered])  # camera z in world
+    directions = torch.stack([f.camera.viewing_direction.double().cpu() for f in frames])
     cosines = (directions[1:] * directions[:-1]).sum(dim=-1).clamp(-1.0, 1.0)
     return float(torch.rad2deg(torch.acos(cosines)).median())
 
 
 def check_flow_viewpoints(scene: SceneData, config: FlowConfig) -> None:
     """Refuse the flow loss on data whose consecutive training views jump (``FlowConfig.max_view_change``)."""
-    change = median_view_change(scene.train)
+    change = median_view_change(sorted_training_frames(scene))
     if change > config.max_view_change:
         raise ValueError(
             f"--flow lpfm: {scene.root}'s consecutive training views turn by {change:.0f} degrees at the median (more "

@@ -125,6 +125,11 @@ class Camera:
         return -w2c[:3, :3].T @ w2c[:3, 3]
 
     @property
+    def viewing_direction(self) -> Tensor:
+        """The camera's +z axis (where it looks) in world coordinates [3], a unit vector."""
+        return self.world_to_camera[2, :3]
+
+    @property
     def fov_x(self) -> float:
         return 2.0 * math.atan(0.5 * self.width / self.fx)
 

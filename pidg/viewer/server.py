@@ -94,7 +94,7 @@ def cameras_focus(cameras: list[Camera]) -> np.ndarray | None:
     a, b = np.zeros((3, 3)), np.zeros(3)
     for camera in cameras:
         _, centre = pose_of_camera(camera)
-        axis = np.asarray(camera.world_to_camera[2, :3].tolist(), np.float64)  # the viewing direction in the world
+        axis = np.asarray(camera.viewing_direction.tolist(), np.float64)
         off_axis = np.eye(3) - np.outer(axis, axis) / max(float(axis @ axis), 1e-12)
         a += off_axis
         b += off_axis @ centre
@@ -304,7 +304,7 @@ class Viewer:
     def _look_through(self, client: Any, view: TrainingView) -> None:
         """Put a browser's camera where a training camera was and the time at that frame's time."""
         wxyz, position = pose_of_camera(view.camera)
-        forward = np.asarray(view.camera.world_to_camera[2, :3].tolist())  # camera +z (viewing direction) in the world
+        forward = np.asarray(view.camera.viewing_direction.tolist())
         distance = float(np.dot(self._centre - position, forward))
         with client.atomic():
             client.camera.fov = view.camera.fov_y

@@ -238,12 +238,12 @@ def _orbit_frames(angles_deg: list[float]) -> list:
     return frames
 
 
-def test_median_view_change_is_the_angle_between_consecutive_views_in_time_order():
+def test_median_view_change_is_the_angle_between_consecutive_views():
     from pidg.flow import median_view_change
 
     orbit = _orbit_frames([5.0 * k for k in range(12)])  # a video: 5 degrees a frame
     assert median_view_change(orbit) == pytest.approx(5.0, abs=1e-3)
-    assert median_view_change(list(reversed(orbit))) == pytest.approx(5.0, abs=1e-3)  # ordered by time, not by list
+    assert median_view_change(list(reversed(orbit))) == pytest.approx(5.0, abs=1e-3)  # the same turns backwards
     jumping = _orbit_frames([0.0, 90.0, 10.0, 170.0, 20.0, 100.0, 30.0])  # D-NeRF-like: views jump
     assert median_view_change(jumping) == pytest.approx(80.0, abs=1e-3)
     assert median_view_change(orbit[:1]) == 0.0
@@ -262,3 +262,14 @@ def test_the_trainer_refuses_the_flow_loss_where_consecutive_views_jump(tmp_path
         Trainer(cfg, scene)
     cfg.flow = replace(cfg.flow, max_view_change=180.0)
     assert Trainer(cfg, scene).flow_cache is not None
+
+
+def test_the_viewpoint_check_reads_the_training_frames_in_time_order():
+    """The check measures the flow pairs, consecutive in time, not the order the frames were listed in."""
+    from pidg.flow import check_flow_viewpoints, median_view_change
+
+    scene = make_procedural_scene(ProceduralSceneConfig(n_train=24, n_test=2, width=24, height=24, n_gaussians=600, n_init_points=150))
+    order = torch.randperm(len(scene.train), generator=torch.Generator().manual_seed(0)).tolist()
+    shuffled = replace(scene, splits={**scene.splits, "train": [scene.train[k] for k in order]})
+    assert median_view_change(shuffled.train) > 30.0  # listed out of order, the views jump
+    check_flow_viewpoints(shuffled, FlowConfig())  # in time order they turn by 15 degrees a pair: accepted

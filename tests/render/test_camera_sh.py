@@ -42,6 +42,13 @@ def test_resize_and_errors():
         Camera(torch.eye(4), 10, 10, 5, 5, 10, 10, near=1.0, far=0.5)
 
 
+def test_viewing_direction_points_from_the_eye_to_the_target():
+    cam = Camera.look_at((1.0, 2.0, 3.0), (1.0, 2.0 + 3.0, 3.0 - 4.0), (0, 0, 1), 32, 32, 1.0)
+    assert torch.allclose(cam.viewing_direction, torch.tensor([0.0, 0.6, -0.8]), atol=1e-6)
+    depth = cam.project_points(torch.tensor([[1.0, 5.0, -1.0]]))[1]  # the target: on the axis, 5 units away
+    assert float(depth[0]) == pytest.approx(5.0, rel=1e-5)
+
+
 def test_sh_basis_is_orthonormal():
     """Quadrature over the sphere: the 16 basis functions are orthonormal (an independent check of constants)."""
     n_t, n_p = 200, 400
