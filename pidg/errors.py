@@ -8,3 +8,7 @@ class NonFiniteError(ValueError):
 
 class TrainingFailed(RuntimeError):
     """Training stopped on a failure; the message says where the last good checkpoint and the failed state are."""
+
+
+class DeviceUnavailable(RuntimeError):
+    """The requested device or a backend it needs is not available; the message says how to get it."""

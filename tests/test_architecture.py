@@ -17,7 +17,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "pidg"
 FLOORS: list[set[str]] = [
     # settings that must precede torch (the package's face imports them first); errors; numba float32 helpers
     {"pidg._env", "pidg.errors", "pidg.kernel_math"},
-    {"pidg", "pidg.config_tools", "pidg.checkpoint", "pidg.device", "pidg.render", "pidg.metrics"},
+    {"pidg", "pidg.config_tools", "pidg.checkpoint", "pidg.render", "pidg.metrics"},
+    {"pidg.device"},  # what runs where: checks the render's backends against the device
     {"pidg.data"},
     {"pidg.models"},
     {"pidg.physics", "pidg.flow"},

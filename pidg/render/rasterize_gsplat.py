@@ -8,16 +8,75 @@ background-free exactly as on CPU. Same conventions as ours: OpenCV world-to-cam
 
 Densification reads the view-space positional gradient where gsplat's backward writes it: ``meta["means2d"]``
 [1, N, 2] (``packed=False`` keeps it aligned with our Gaussian indices), in pixels like the CPU path's.
+
+gsplat compiles its CUDA code on a process's first use, deleting and rebuilding one shared build folder, so two
+processes that start at once break each other's build. Every first use through pidg (this adapter, and the
+run's check before training) renders one Gaussian while holding an inter-process lock, :data:`GSPLAT_BUILD_LOCK`.
 """
 from __future__ import annotations
+
+import contextlib
+import fcntl
+import functools
+import tempfile
+from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from pidg.errors import DeviceUnavailable
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
 
 GSPLAT_MISSING = "the gsplat backend needs `pip install gsplat` (CUDA only)"
+GSPLAT_BUILD_LOCK = Path(tempfile.gettempdir()) / "pidg-gsplat-build.lock"
+
+
+@contextlib.contextmanager
+def _exclusive(path: Path):
+    """An inter-process lock (flock) held for the block."""
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+@functools.cache
+def gsplat_load_error(device: torch.device) -> str | None:
+    """Why gsplat cannot render on ``device`` (None when it can), found by rendering one Gaussian through its
+    documented ``rasterization`` while holding :data:`GSPLAT_BUILD_LOCK` (the first use builds its CUDA code: about a
+    minute on 16 cores). A build that fails (compiler, CUDA toolkit) would otherwise surface as an ImportError in the
+    middle of the work."""
+    try:
+        with _exclusive(GSPLAT_BUILD_LOCK):
+            _render_one_gaussian(device)
+    except Exception as err:  # noqa: BLE001  (any failure of the third-party build is reported, with its type)
+        return f"{type(err).__name__}: {str(err).strip().splitlines()[-1] if str(err).strip() else 'no message'}"
+    return None
+
+
+def require_gsplat(device: torch.device) -> None:
+    """Raise :class:`DeviceUnavailable`, naming the reason, unless gsplat renders on ``device`` (see
+    :func:`gsplat_load_error`)."""
+    error = gsplat_load_error(device)
+    if error is not None:
+        raise DeviceUnavailable(
+            f"gsplat is installed but cannot render on {device} ({error}): see gsplat's install notes for its CUDA "
+            "build, or use --backend torch for the slow reference compositor"
+        )
+
+
+def _render_one_gaussian(device: torch.device) -> None:
+    from gsplat import rasterization
+
+    one = torch.ones(1, device=device)
+    rasterization(
+        means=torch.tensor([[0.0, 0.0, 2.0]], device=device), quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=device),
+        scales=one.expand(1, 3) * 0.1, opacities=one * 0.5, colors=one.expand(1, 3), viewmats=torch.eye(4, device=device)[None],
+        Ks=torch.tensor([[[8.0, 0.0, 4.0], [0.0, 8.0, 4.0], [0.0, 0.0, 1.0]]], device=device), width=8, height=8,
+    )
 
 
 def gsplat_available() -> bool:
@@ -46,6 +105,8 @@ def rasterize_gsplat(
         from gsplat import rasterization
     except ImportError as err:  # depends on the install; the trainer checks before it starts
         raise ImportError(GSPLAT_MISSING) from err
+    if means.is_cuda:  # the process's first use builds gsplat's CUDA code under the lock; later calls: a cache lookup
+        require_gsplat(means.device)
 
     n_feat = 0 if features is None else features.shape[1]
     colors = rgb if features is None else torch.cat([rgb, features], dim=-1)

@@ -16,6 +16,7 @@ import pidg.device
 import pidg.models.deformation.hash_grid as hash_grid_module
 import pidg.models.deformation.warp as warp_module
 import pidg.render.api as render_api
+import pidg.render.rasterize_gsplat as rasterize_gsplat
 import pidg.training.losses as losses_module
 from pidg.cli import main
 from pidg.data.procedural import ProceduralSceneConfig, make_procedural_scene, write_procedural_dataset
@@ -91,19 +92,19 @@ def test_a_gsplat_that_cannot_render_stops_before_training_with_its_reason(monke
 
     def working(**kwargs):
         assert kwargs["means"].shape == (1, 3) and kwargs["Ks"].shape == (1, 3, 3)
-        with open(pidg.device.GSPLAT_BUILD_LOCK, "a") as other:  # another process's try: the probe holds the lock
+        with open(rasterize_gsplat.GSPLAT_BUILD_LOCK, "a") as other:  # another process's try: the probe holds the lock
             with pytest.raises(BlockingIOError):
                 fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
         return None
 
     for rasterization, expected in ((broken, "ImportError: /root/.cache/torch_extensions/gsplat_cuda/gsplat_cuda.so: cannot open"), (working, None)):
         monkeypatch.setitem(sys.modules, "gsplat", types.SimpleNamespace(rasterization=rasterization))
-        pidg.device.gsplat_load_error.cache_clear()
-        found = pidg.device.gsplat_load_error(torch.device("cpu"))  # the probe runs on any device; CUDA in use
+        rasterize_gsplat.gsplat_load_error.cache_clear()
+        found = rasterize_gsplat.gsplat_load_error(torch.device("cpu"))  # the probe runs on any device; CUDA in use
         assert found == expected if expected is None else found.startswith(expected)
-    pidg.device.gsplat_load_error.cache_clear()
+    rasterize_gsplat.gsplat_load_error.cache_clear()
     monkeypatch.setattr(pidg.device, "gsplat_installed", lambda: True)
-    monkeypatch.setattr(pidg.device, "gsplat_load_error", lambda device: "ImportError: no .so")
+    monkeypatch.setattr(rasterize_gsplat, "gsplat_load_error", lambda device: "ImportError: no .so")
     with pytest.raises(DeviceUnavailable, match=r"gsplat is installed but cannot render on cuda \(ImportError: no .so\).*--backend torch"):
         rasterizer_for("auto", torch.device("cuda"))
 
