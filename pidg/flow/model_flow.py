@@ -23,7 +23,7 @@ from pidg.kernel_math import ZEROED_BUFFERS
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import Camera, RenderOutput
-from pidg.render.api import gaussians_reaching, project
+from pidg.render.api import PreparedRender, gaussians_reaching
 
 
 def interval_velocity(
@@ -70,7 +70,7 @@ def flow_camera_t1(pair: FlowPair, config: FlowConfig) -> Camera | None:
 
 def supervised_flow_channels(
     model: DynamicGaussians,
-    camera: Camera,
+    screen: PreparedRender,
     state_t: DeformedGaussians,
     t: float,
     t1: float,
@@ -82,20 +82,19 @@ def supervised_flow_channels(
     integration: VelocityIntegration = "euler",
 ) -> Tensor:
     """:func:`flow_channels` [N, C] for a loss that reads the rendered flows only at ``supervised`` pixels [H, W]
-    of camera t: rows of Gaussians that add nothing there are zero (:func:`pidg.render.api.gaussians_reaching`: on
-    the cpu backend those the compositor gives no weight at any of them, hidden or too faint; elsewhere those whose
-    footprint misses them all), so the deformation to t+1 (``t1``), the velocities and the flow channels are
-    computed, and differentiated, for the others only. The loss and its gradients are those of the full channels.
+    of camera t, to be composited into ``screen``, the render of ``state_t`` in camera t (``prepare_render``): rows of
+    Gaussians that add nothing there are zero (:func:`pidg.render.api.gaussians_reaching`, on the render's own
+    projection and tile lists: on the cpu backend those the compositor gives no weight at any of them, hidden or too
+    faint; elsewhere those whose footprint misses them all), so the deformation to t+1 (``t1``), the velocities and
+    the flow channels are computed, and differentiated, for the others only. The loss and its gradients are those of the full channels.
     ``deforming`` False (a static warm-up): the Gaussians at t+1 are the canonical ones. ``camera_t1``: as in
     :func:`flow_channels`. ``depth_change``: with the depth-change channels (:mod:`pidg.flow.gaussian_flow`).
     ``integration``: how the velocity flow carries the particles (:func:`interval_velocity`)."""
     n = state_t.means.shape[0]
     has_field = model.material_field is not None
     channels = flow_channel_count(has_field, depth_change)
-    with torch.no_grad():
-        g = model.gaussians
-        proj = project(state_t.means, state_t.quats, state_t.log_scales.exp(), g.opacities, camera, model.backend)
-        rows = gaussians_reaching(proj, g.opacities, supervised.to(proj.means2d.device), model.backend).nonzero().squeeze(1)
+    camera = screen.camera
+    rows = gaussians_reaching(screen, supervised).nonzero().squeeze(1)
     out = state_t.means.new_zeros(n, channels)
     if rows.numel() == 0:
         return out

@@ -24,7 +24,7 @@ from pidg.models.deformation import Bounds, DeformationConfig, DeformationModel,
 from pidg.models.gaussians import GaussianModel, GaussianModelConfig
 from pidg.models.material_field import MaterialField, MaterialFieldConfig
 from pidg.models.time_axis import TimeAxis
-from pidg.render import Camera, RenderBackend, RenderOutput, rasterize
+from pidg.render import Camera, PreparedRender, RenderBackend, RenderOutput, composite, prepare_render
 
 MODEL_FORMAT = "pidg-model-1"
 DYNAMIC_MASK = "is_dynamic"  # per-Gaussian bool buffer, present once static/dynamic decoupling has run
@@ -177,11 +177,16 @@ class DynamicGaussians:
     ) -> RenderOutput:
         """Render Gaussians already placed at some time (``at`` or ``canonical``) with this model's colours,
         opacities and background (SH degree: the active one unless given); ``feature_pixels`` as ``rasterize``'s."""
+        return composite(self.prepare_render(state, camera, sh_degree), features, feature_pixels)
+
+    def prepare_render(self, state: DeformedGaussians, camera: Camera, sh_degree: int | None = None) -> PreparedRender:
+        """:meth:`render_state`'s first stage (``pidg.render.api.prepare_render``): the Gaussians projected and
+        coloured in ``camera``, for a loss that asks which of them reach some pixels before the features are made;
+        ``pidg.render.api.composite`` finishes it."""
         g = self.gaussians
-        return rasterize(
+        return prepare_render(
             state.means, state.quats, g.opacities, g.sh, camera, log_scales=state.log_scales, background=self.background,
-            sh_degree=g.active_sh_degree if sh_degree is None else sh_degree, backend=self.backend, features=features,
-            feature_pixels=feature_pixels,
+            sh_degree=g.active_sh_degree if sh_degree is None else sh_degree, backend=self.backend,
         )
 
     # ---- material field --------------------------------------------------------------------------------------
@@ -204,13 +209,14 @@ class DynamicGaussians:
         index = self.gaussians.particle_index
         dynamic = self.dynamic_mask
         if rows is not None:
-            index = index[rows]
-            dynamic = None if dynamic is None else dynamic[rows]
-        if dynamic is None:
+            index = index.index_select(0, rows)
+            dynamic = None if dynamic is None else dynamic.index_select(0, rows)
+        moving = None if dynamic is None else dynamic.nonzero().squeeze(1)
+        if moving is None or moving.shape[0] == means.shape[0]:  # every row is dynamic: no gather, no scatter
             return field(means, t, index)[0]
         v = means.new_zeros(means.shape)
-        if bool(dynamic.any()):
-            v = v.index_put((dynamic.nonzero().squeeze(1),), field(means[dynamic], t, index[dynamic])[0])
+        if moving.shape[0]:
+            v = v.index_copy(0, moving, field(means.index_select(0, moving), t, index.index_select(0, moving))[0])
         return v
 
     # ---- persistence -----------------------------------------------------------------------------------------

@@ -180,6 +180,10 @@ class MaterialField(nn.Module):
         self.temporal_planes = nn.Parameter(torch.randn(3, rs, rt, c) * cfg.init_std)  # XT, YT, ZT
         self.index_embedding = nn.Parameter(torch.randn(self.num_particles, cfg.embedding_dim) * cfg.init_std)
         self.register_buffer("frequencies", math.pi * 2.0 ** torch.arange(cfg.time_frequencies, dtype=torch.float32))
+        # the spatial planes' a and b axes as column indices (index_select: a gather, where a list index is the slower
+        # advanced indexing); not saved, derived from SPATIAL_AXES
+        self.register_buffer("spatial_axis_a", torch.tensor(SPATIAL_AXES[0]), persistent=False)
+        self.register_buffer("spatial_axis_b", torch.tensor(SPATIAL_AXES[1]), persistent=False)
         self.activation, self.activation_value = ACTIVATIONS[cfg.activation], ACTIVATION_VALUES[cfg.activation]
         self.tangent_dim = 6 * c + 2 * cfg.time_frequencies  # feature columns that depend on (x, t)
         dims = [self.tangent_dim + cfg.embedding_dim] + [cfg.width] * cfg.depth
@@ -294,19 +298,30 @@ class MaterialField(nn.Module):
     def _plane_lookups(self, x: Tensor, times: Tensor, derivatives: bool = True) -> tuple[tuple[Tensor, Tensor | None, Tensor | None], Tensor]:
         """Values, d/dpa, d/dpb of the six planes [M, 6, C] (XY, XZ, YZ, XT, YT, ZT; the derivatives None without
         ``derivatives``) and dp/d(x, y, z, t)."""
-        p_space, p_time, scale = self._plane_coordinates(x, times)
-        backend = self.config.backend
-        spatial = lookup_planes(self.spatial_planes, p_space[:, list(SPATIAL_AXES[0])], p_space[:, list(SPATIAL_AXES[1])], derivatives, backend)
-        temporal = lookup_planes(self.temporal_planes, p_space, p_time[:, None].expand(-1, 3), derivatives, backend)
+        spatial, temporal, scale = self._spatial_and_temporal_lookups(x, times, derivatives)
         if not derivatives:
             return (torch.cat([spatial[0], temporal[0]], dim=1), None, None), scale
         return tuple(torch.cat([s, t], dim=1) for s, t in zip(spatial, temporal)), scale  # type: ignore[return-value,arg-type]
 
-    def _fourier(self, times: Tensor) -> tuple[Tensor, Tensor]:
-        """sin / cos(omega_k t_hat) [M, 2n] and its t-derivative [M, 2n] (t_hat = 2t - 1)."""
+    def _spatial_and_temporal_lookups(
+        self, x: Tensor, times: Tensor, derivatives: bool
+    ) -> tuple[tuple[Tensor, Tensor | None, Tensor | None], tuple[Tensor, Tensor | None, Tensor | None], Tensor]:
+        """:meth:`_plane_lookups`' values (and derivatives) of the spatial planes [M, 3, C] and of the temporal
+        ones [M, 3, C], apart, and dp/d(x, y, z, t)."""
+        p_space, p_time, scale = self._plane_coordinates(x, times)
+        backend = self.config.backend
+        pa, pb = p_space.index_select(1, self.spatial_axis_a), p_space.index_select(1, self.spatial_axis_b)
+        spatial = lookup_planes(self.spatial_planes, pa, pb, derivatives, backend)
+        temporal = lookup_planes(self.temporal_planes, p_space, p_time[:, None].expand(-1, 3), derivatives, backend)
+        return spatial, temporal, scale
+
+    def _fourier(self, times: Tensor, derivative: bool = True) -> tuple[Tensor, Tensor | None]:
+        """sin / cos(omega_k t_hat) [M, 2n] and its t-derivative [M, 2n] (None without ``derivative``; t_hat = 2t - 1)."""
         omega = self.frequencies.to(times.dtype)
         angles = (2.0 * times - 1.0)[:, None] * omega
         sin, cos = torch.sin(angles), torch.cos(angles)
+        if not derivative:
+            return torch.cat([sin, cos], dim=-1), None
         return torch.cat([sin, cos], dim=-1), torch.cat([2.0 * omega * cos, -2.0 * omega * sin], dim=-1)
 
     def _embed(self, index: Tensor) -> Tensor:
@@ -314,10 +329,11 @@ class MaterialField(nn.Module):
         return F.embedding(index, self.index_embedding, sparse=True)
 
     def _features(self, x: Tensor, times: Tensor, index: Tensor) -> Tensor:
-        (planes, _, _), _ = self._plane_lookups(x, times, derivatives=False)
-        fourier, _ = self._fourier(times)
+        # the six planes' columns in _plane_lookups' order (spatial, then temporal), without concatenating them first
+        (spatial, _, _), (temporal, _, _), _ = self._spatial_and_temporal_lookups(x, times, derivatives=False)
+        fourier, _ = self._fourier(times, derivative=False)
         embedding = self._embed(index)
-        return torch.cat([planes.flatten(1), fourier, embedding], dim=-1)
+        return torch.cat([spatial.flatten(1), temporal.flatten(1), fourier, embedding], dim=-1)
 
     def _features_with_tangents(self, x: Tensor, times: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
         """Features [M, D] and their derivatives along x, y, z, t [4, M, tangent_dim] (the embedding's are 0)."""
@@ -328,6 +344,7 @@ class MaterialField(nn.Module):
         m = x.shape[0]
         d_planes = d_pa * scale_a[:, None, :, None] + d_pb * scale_b[:, None, :, None]  # [4, M, 6, C]
         fourier, d_fourier = self._fourier(times)
+        assert d_fourier is not None
         d_fourier = torch.cat([d_fourier.new_zeros(3, m, d_fourier.shape[1]), d_fourier[None]], dim=0)
         tangent = torch.cat([d_planes.flatten(2), d_fourier], dim=-1)
         embedding = self._embed(index)

@@ -17,7 +17,7 @@ from pidg.render.output import RenderOutput
 from pidg.render.projection import TILE_SIZE, Projection, project_gaussians, tile_rows_touched
 from pidg.render.projection_cpu import project_and_shade_cpu
 from pidg.render.footprint import footprints_touching
-from pidg.render.rasterize_cpu import composite_cpu, finish_image_cpu, gaussians_reaching_cpu
+from pidg.render.rasterize_cpu import TileBins, bin_gaussians, composite_cpu, finish_image_cpu, gaussians_reaching_cpu
 from pidg.render.rasterize_gsplat import rasterize_gsplat
 from pidg.render.rasterize_torch import channels_below, composite_reference
 from pidg.render.sh import sh_to_rgb
@@ -35,13 +35,11 @@ def _opacity_vector(opacities: Tensor) -> Tensor:
 
 
 def _check_inputs(
-    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, features: Tensor | None,
-    background: Tensor | None, sh_degree: int | None, camera: Camera,
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, background: Tensor | None,
+    sh_degree: int | None, camera: Camera,
 ) -> None:
     """Fail early, with the name of the offending input, on the mistakes that otherwise give garbage images."""
     named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors}
-    if features is not None:
-        named["features"] = features
     for name, t in named.items():
         if not isinstance(t, Tensor):
             raise TypeError(f"rasterize: {name} must be a torch.Tensor, got {type(t).__name__}")
@@ -61,26 +59,38 @@ def _check_inputs(
                 f"rasterize: with sh_degree={sh_degree} colors must be SH coefficients [N, K>={(sh_degree + 1) ** 2}, 3],"
                 f" got {list(colors.shape)}"
             )
-    if features is not None and (features.dim() != 2 or features.shape[0] != n):
-        raise ValueError(f"rasterize: features must have shape [N, C] = [{n}, C], got {list(features.shape)}")
-    dtype, device = means.dtype, means.device
+    dtype = means.dtype
     if dtype not in (torch.float32, torch.float64):
         raise TypeError(f"rasterize: means must be float32 or float64, got {dtype}")
     for name, t in named.items():
-        if t.dtype != dtype:
-            raise TypeError(f"rasterize: {name} has dtype {t.dtype} but means has {dtype}; use one float dtype")
-        if t.device != device:
-            raise ValueError(f"rasterize: {name} is on {t.device} but means is on {device}")
-        # a NaN or inf anywhere makes the sum non-finite: one reduction instead of an elementwise pass per input
-        if t.numel() and not torch.isfinite(t.sum()) and not torch.isfinite(t).all():
-            bad = (~torch.isfinite(t)).reshape(t.shape[0], -1).any(dim=1).nonzero()[:5].flatten().tolist() if t.numel() else []
-            raise NonFiniteError(f"rasterize: {name} contains NaN or infinite values (first bad Gaussians: {bad})")
+        _check_like_means(name, t, means)
     if (scales < 0).any():
         raise ValueError("rasterize: scales must be non-negative (pass log_scales= for log-space scales)")
     if (quats.norm(dim=-1) == 0).any():
         raise ValueError("rasterize: a quaternion has zero norm")
     if background is not None and (tuple(background.shape) != (3,) or not torch.isfinite(background).all()):
         raise ValueError(f"rasterize: background must be a finite RGB tensor of shape [3], got {list(background.shape)}")
+
+
+def _check_like_means(name: str, t: Tensor, means: Tensor) -> None:
+    """``t`` has the dtype and device of ``means`` and holds finite values only."""
+    if t.dtype != means.dtype:
+        raise TypeError(f"rasterize: {name} has dtype {t.dtype} but means has {means.dtype}; use one float dtype")
+    if t.device != means.device:
+        raise ValueError(f"rasterize: {name} is on {t.device} but means is on {means.device}")
+    # a NaN or inf anywhere makes the sum non-finite: one reduction instead of an elementwise pass per input
+    if t.numel() and not torch.isfinite(t.sum()) and not torch.isfinite(t).all():
+        bad = (~torch.isfinite(t)).reshape(t.shape[0], -1).any(dim=1).nonzero()[:5].flatten().tolist()
+        raise NonFiniteError(f"rasterize: {name} contains NaN or infinite values (first bad Gaussians: {bad})")
+
+
+def _check_features(features: Tensor, means: Tensor) -> None:
+    if not isinstance(features, Tensor):
+        raise TypeError(f"rasterize: features must be a torch.Tensor, got {type(features).__name__}")
+    n = means.shape[0]
+    if features.dim() != 2 or features.shape[0] != n:
+        raise ValueError(f"rasterize: features must have shape [N, C] = [{n}, C], got {list(features.shape)}")
+    _check_like_means("features", features, means)
 
 
 def resolve_backend(backend: RenderBackend, device: torch.device) -> Literal["cpu", "torch", "gsplat"]:
@@ -114,21 +124,137 @@ def project(
     return project_gaussians(means, quats, scales, opacities, camera)
 
 
-def gaussians_reaching(
-    proj: Projection, opacities: Tensor, pixels: Tensor, backend: RenderBackend = "auto", tile_size: int = TILE_SIZE
-) -> Tensor:
-    """[N] bool: the Gaussians of a projection (``project`` with the same ``backend``) that can add to a pixel of
-    ``pixels`` [H, W] (bool) in ``rasterize``'s render, so a loss on those pixels can skip the others' per-Gaussian
-    work. On the cpu backend (float32) the set is exact, the compositor's own weights (hidden and too faint
-    Gaussians are left out: ``gaussians_reaching_cpu``); elsewhere it is the footprint boxes' superset
-    (``footprints_touching``). Either way the others add exactly nothing at those pixels."""
-    touching = footprints_touching(proj.means2d, proj.radii, pixels)
+@dataclasses.dataclass
+class PreparedRender:
+    """A render's first stage, for one camera: the Gaussians checked, projected and coloured (differentiable; on the
+    cpu backend also binned into tiles, once, when first asked), before any feature channel is composited.
+    :func:`composite` finishes it. A loss that must know which Gaussians reach some pixels before it makes their
+    channels asks it (:func:`gaussians_reaching`) instead of projecting and binning the same Gaussians again."""
+
+    backend: Literal["cpu", "torch", "gsplat"]
+    camera: Camera  # on the Gaussians' device
+    means: Tensor  # [N, 3]
+    quats: Tensor  # [N, 4]
+    scales: Tensor  # [N, 3], linear
+    opacities: Tensor  # [N]
+    rgb: Tensor  # [N, 3] each Gaussian's colour seen from this camera (SH evaluated)
+    background: Tensor  # [3]
+    tile_size: int
+    projection: Projection | None  # None on gsplat, which projects inside its own call
+    _bins: TileBins | None = None
+
+    @property
+    def bins(self) -> TileBins:
+        """The cpu compositor's depth-sorted tile lists (computed on first use, then shared)."""
+        if self.backend != "cpu" or self.projection is None:
+            raise ValueError(f"PreparedRender.bins: tile lists belong to the cpu backend, this render uses {self.backend}")
+        if self._bins is None:
+            proj = self.projection
+            self._bins = bin_gaussians(proj.means2d, proj.radii, proj.depths, self.camera.width, self.camera.height, self.tile_size)
+        return self._bins
+
+
+def prepare_render(
+    means: Tensor,
+    quats: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    camera: Camera,
+    *,
+    scales: Tensor | None = None,
+    log_scales: Tensor | None = None,
+    background: Tensor | None = None,
+    sh_degree: int | None = None,
+    backend: RenderBackend = "auto",
+    tile_size: int = TILE_SIZE,
+) -> PreparedRender:
+    """:func:`rasterize`'s first stage (same arguments, without the feature channels)."""
+    if (scales is None) == (log_scales is None):
+        raise ValueError("rasterize: pass exactly one of scales= or log_scales=")
     opacities = _opacity_vector(opacities)
-    if resolve_backend(backend, proj.means2d.device) != "cpu" or proj.means2d.dtype != torch.float32:
-        return touching
-    # only Gaussians whose box holds a pixel can add to it: the others are culled (radius 0) before the binning
-    radii = torch.where(touching.unsqueeze(-1), proj.radii, torch.zeros((), dtype=proj.radii.dtype))
-    return gaussians_reaching_cpu(proj.means2d, proj.conics, opacities, proj.depths, radii, pixels, tile_size)
+    lin_scales = scales if scales is not None else torch.exp(log_scales)  # type: ignore[arg-type]
+    _check_inputs(means, quats, lin_scales, opacities, colors, background, sh_degree, camera)
+    which = resolve_backend(backend, means.device)
+    camera = camera.to(means.device)
+    bg = background.to(means.dtype) if background is not None else means.new_zeros(3)
+    proj: Projection | None = None
+    if which == "cpu" and means.dtype == torch.float32:  # projection and colour as one numba kernel
+        proj, rgb = project_and_shade_cpu(means, quats, lin_scales, opacities, colors, camera, sh_degree)
+    else:
+        rgb = colors if sh_degree is None else sh_to_rgb(colors, means - camera.camera_center.to(means.dtype), sh_degree)
+        if which != "gsplat":
+            proj = project_gaussians(means, quats, lin_scales, opacities, camera)
+    if proj is not None and proj.means2d.requires_grad:
+        proj.means2d.retain_grad()  # the view-space positional gradient densification reads
+    return PreparedRender(which, camera, means, quats, lin_scales, opacities, rgb, bg, tile_size, proj)
+
+
+@torch.no_grad()
+def gaussians_reaching(screen: PreparedRender, pixels: Tensor) -> Tensor:
+    """[N] bool: the Gaussians of a prepared render that can add to a pixel of ``pixels`` [H, W] (bool) once it is
+    composited, so a loss on those pixels can skip the others' per-Gaussian work. On the cpu backend (float32) the
+    set is exact, the compositor's own weights on its own tile lists (hidden and too faint Gaussians are left out:
+    ``gaussians_reaching_cpu``); elsewhere it is the footprint boxes' superset (``footprints_touching``). Either way
+    the others add exactly nothing at those pixels."""
+    pixels = pixels.to(screen.means.device)
+    proj = screen.projection
+    if proj is None:  # gsplat projects inside its own call: the torch projection of the same Gaussians
+        proj = project_gaussians(screen.means, screen.quats, screen.scales, screen.opacities, screen.camera)
+    if screen.backend != "cpu" or proj.means2d.dtype != torch.float32:
+        return footprints_touching(proj.means2d, proj.radii, pixels)
+    return gaussians_reaching_cpu(
+        proj.means2d, proj.conics, screen.opacities, proj.depths, proj.radii, pixels, screen.tile_size, bins=screen.bins
+    )
+
+
+def composite(screen: PreparedRender, features: Tensor | None = None, feature_pixels: Tensor | None = None) -> RenderOutput:
+    """:func:`rasterize`'s second stage: composite a prepared render, with extra feature channels [N, C] (and
+    ``feature_pixels`` [H, W]) as ``rasterize`` takes them."""
+    camera, means, which, tile_size = screen.camera, screen.means, screen.backend, screen.tile_size
+    if features is not None:
+        _check_features(features, means)
+    if feature_pixels is not None:
+        if tuple(feature_pixels.shape) != (camera.height, camera.width):
+            raise ValueError(f"rasterize: feature_pixels must be [H, W] = [{camera.height}, {camera.width}], got {list(feature_pixels.shape)}")
+        feature_pixels = feature_pixels.to(device=means.device, dtype=torch.bool)
+    bg, opacities = screen.background, screen.opacities
+    if which == "gsplat":
+        out = rasterize_gsplat(means, screen.quats, screen.scales, opacities, screen.rgb, camera, features, bg)
+        if feature_pixels is not None and out.features is not None:
+            n_feat = out.features.shape[-1]
+            kept = channels_below(feature_row_channels(feature_pixels, 0, n_feat, tile_size), n_feat, camera.width, camera.height, tile_size)
+            out = dataclasses.replace(out, features=out.features * kept.to(out.features.dtype))
+        return out
+    proj = screen.projection
+    assert proj is not None
+    n_feat = 0 if features is None else features.shape[1]
+    channels = [screen.rgb, proj.depths.unsqueeze(-1)] + ([features] if features is not None else [])
+    per_gaussian = torch.cat(channels, dim=-1)  # [N, 3 + 1 + C]: colour, depth and features in one pass
+    row_channels = None
+    if feature_pixels is not None and n_feat:
+        row_channels = feature_row_channels(feature_pixels, 4, n_feat, tile_size)  # colour and depth everywhere
+    # colour and depth into the image, the features into an image of their own (``extra``)
+    args = (proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size, row_channels)
+    if which == "cpu":
+        image, alpha, extra = composite_cpu(*args, image_channels=4, bins=screen.bins)
+    else:
+        image, alpha, extra = composite_reference(*args, image_channels=4)
+    if which == "cpu" and image.dtype == torch.float32 and not bg.requires_grad:
+        rgb, depth = finish_image_cpu(image, alpha, bg)  # the lines below as one numba pass
+    else:
+        # split, not sliced: each slice's backward fills a zero gradient of the whole image (measured 9 ms of a step)
+        colour, depth = image.split([3, 1], dim=-1)
+        rgb = colour + (1.0 - alpha).unsqueeze(-1) * bg
+        depth = depth.squeeze(-1)
+    return RenderOutput(
+        rgb=rgb,
+        alpha=alpha,
+        depth=depth,
+        features=extra if n_feat else None,
+        means2d=proj.means2d,
+        radii=proj.radii,
+        depths=proj.depths,
+    )
 
 
 def rasterize(
@@ -147,7 +273,7 @@ def rasterize(
     tile_size: int = TILE_SIZE,
     feature_pixels: Tensor | None = None,
 ) -> RenderOutput:
-    """Render N Gaussians into one camera.
+    """Render N Gaussians into one camera (:func:`prepare_render`, then :func:`composite`).
 
     Args:
         means [N, 3], quats [N, 4] (w, x, y, z; need not be normalised), opacities [N] in [0, 1].
@@ -162,61 +288,8 @@ def rasterize(
             work) that hold one of them and are 0 elsewhere, so a loss on a few pixels pays for their rows only (on
             the cpu backend; the others compute all and zero the rest).
     """
-    if (scales is None) == (log_scales is None):
-        raise ValueError("rasterize: pass exactly one of scales= or log_scales=")
-    opacities = _opacity_vector(opacities)
-    lin_scales = scales if scales is not None else torch.exp(log_scales)  # type: ignore[arg-type]
-    _check_inputs(means, quats, lin_scales, opacities, colors, features, background, sh_degree, camera)
-    which = resolve_backend(backend, means.device)
-    camera = camera.to(means.device)
-    if feature_pixels is not None:
-        if tuple(feature_pixels.shape) != (camera.height, camera.width):
-            raise ValueError(f"rasterize: feature_pixels must be [H, W] = [{camera.height}, {camera.width}], got {list(feature_pixels.shape)}")
-        feature_pixels = feature_pixels.to(device=means.device, dtype=torch.bool)
-    bg = background.to(means.dtype) if background is not None else means.new_zeros(3)
-
-    if which == "cpu" and means.dtype == torch.float32:  # projection and colour as one numba kernel
-        proj, rgb_per_gaussian = project_and_shade_cpu(means, quats, lin_scales, opacities, colors, camera, sh_degree)
-    else:
-        if sh_degree is not None:
-            rgb_per_gaussian = sh_to_rgb(colors, means - camera.camera_center.to(means.dtype), sh_degree)
-        else:
-            rgb_per_gaussian = colors
-        if which == "gsplat":
-            out = rasterize_gsplat(means, quats, lin_scales, opacities, rgb_per_gaussian, camera, features, bg)
-            if feature_pixels is not None and out.features is not None:
-                n_feat = out.features.shape[-1]
-                kept = channels_below(feature_row_channels(feature_pixels, 0, n_feat, tile_size), n_feat, camera.width, camera.height, tile_size)
-                out = dataclasses.replace(out, features=out.features * kept.to(out.features.dtype))
-            return out
-        proj = project_gaussians(means, quats, lin_scales, opacities, camera)
-    if proj.means2d.requires_grad:
-        proj.means2d.retain_grad()  # the view-space positional gradient densification reads
-    n_feat = 0 if features is None else features.shape[1]
-    channels = [rgb_per_gaussian, proj.depths.unsqueeze(-1)] + ([features] if features is not None else [])
-    per_gaussian = torch.cat(channels, dim=-1)  # [N, 3 + 1 + C]: colour, depth and features in one pass
-    row_channels = None
-    if feature_pixels is not None and n_feat:
-        row_channels = feature_row_channels(feature_pixels, 4, n_feat, tile_size)  # colour and depth everywhere
-    composite = composite_cpu if which == "cpu" else composite_reference
-    # colour and depth into the image, the features into an image of their own (``extra``)
-    image, alpha, extra = composite(
-        proj.means2d, proj.conics, opacities, per_gaussian, proj.depths, proj.radii, camera.width, camera.height, tile_size,
-        row_channels, image_channels=4,
+    screen = prepare_render(
+        means, quats, opacities, colors, camera, scales=scales, log_scales=log_scales, background=background,
+        sh_degree=sh_degree, backend=backend, tile_size=tile_size,
     )
-    if which == "cpu" and image.dtype == torch.float32 and not bg.requires_grad:
-        rgb, depth = finish_image_cpu(image, alpha, bg)  # the lines below as one numba pass
-    else:
-        # split, not sliced: each slice's backward fills a zero gradient of the whole image (measured 9 ms of a step)
-        colour, depth = image.split([3, 1], dim=-1)
-        rgb = colour + (1.0 - alpha).unsqueeze(-1) * bg
-        depth = depth.squeeze(-1)
-    return RenderOutput(
-        rgb=rgb,
-        alpha=alpha,
-        depth=depth,
-        features=extra if n_feat else None,
-        means2d=proj.means2d,
-        radii=proj.radii,
-        depths=proj.depths,
-    )
+    return composite(screen, features, feature_pixels)

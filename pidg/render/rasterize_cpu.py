@@ -774,11 +774,13 @@ def composite_cpu(
     tile_size: int = TILE_SIZE,
     row_channels: Tensor | None = None,
     image_channels: int | None = None,
+    bins: TileBins | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Same contract as ``composite_reference``: image [H, W, A], alpha [H, W] and extra [H, W, D - A],
     differentiable; a tile row composites only its ``row_channels`` [H, tiles_x] leading channels (and pays for
-    those only)."""
-    bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
+    those only). ``bins``: these Gaussians' tile lists when the caller has them (``bin_gaussians``), else made here."""
+    if bins is None:
+        bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
     longest = int(np.diff(bins.tile_offsets).max()) if bins.tile_offsets.shape[0] > 1 else 0
     if longest >= _MAX_TILE_LIST:
         raise ValueError(f"composite_cpu: a tile holds {longest} Gaussians; the kernel counts a pixel's list position "
@@ -797,6 +799,7 @@ def composite_cpu(
 @torch.no_grad()
 def gaussians_reaching_cpu(
     means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, radii: Tensor, pixels: Tensor, tile_size: int = TILE_SIZE,
+    bins: TileBins | None = None,
 ) -> Tensor:
     """[N] bool: the Gaussians that add to a pixel of ``pixels`` [H, W] (bool) in ``composite_cpu``'s render of
     these screen-space Gaussians (a non-zero weight alpha T there), by its own float32 arithmetic, so the set is
@@ -805,13 +808,17 @@ def gaussians_reaching_cpu(
     Used to skip per-Gaussian work for a loss that reads a few pixels (the flow loss). Gaussians hidden behind
     opaque ones, or whose alpha stays under 1/255 there, are left out, which a footprint test cannot see. Gaussians
     whose radius is 0 are culled, as in the render: pass 0 radii to leave out Gaussians known to miss the pixels
-    (their boxes hold none), which makes the binning cheaper and changes nothing at those pixels."""
+    (their boxes hold none), which makes the binning cheaper and changes nothing at those pixels. ``bins``: the
+    render's own tile lists of these Gaussians (``bin_gaussians``; a render that made them needs no second binning)."""
     height, width = pixels.shape
     if means2d.shape[0] == 0:
         return torch.zeros(0, dtype=torch.bool)
     if tile_size > LANES:
         raise ValueError(f"the CPU kernel supports tiles up to {LANES} pixels wide, got {tile_size}")
-    bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
+    if bins is None:
+        bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
+    elif (bins.tile_size, bins.tiles_x, bins.tiles_y, bins.gauss_offsets.shape[0]) != (tile_size, *tile_grid(width, height, tile_size), means2d.shape[0] + 1):
+        raise ValueError("gaussians_reaching_cpu: the tile lists were made for other Gaussians, another image size or tile size")
     mask = pixels.detach().to(device="cpu", dtype=torch.bool).contiguous()
     tiles = tiles_touched(mask, tile_size).reshape(-1)
     reached = np.zeros(bins.num_intersections, dtype=np.uint8)

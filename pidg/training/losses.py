@@ -41,7 +41,7 @@ from pidg.metrics import ssim
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.physics import PhysicsConfig, cmr_loss, particle_velocity, sample_rows, velocity_mismatch
-from pidg.render import OPAQUE_ALPHA, RenderOutput
+from pidg.render import OPAQUE_ALPHA, PreparedRender, RenderOutput
 from pidg.training.config import TrainConfig
 from pidg.training.fused_ssim import fused_ssim
 
@@ -84,6 +84,9 @@ class StepInputs:
     model: DynamicGaussians
     state: DeformedGaussians  # the Gaussians at frame.time (canonical during a static warm-up)
     deforming: bool  # whether the deformation ran (after the static warm-up)
+    # the step's render of ``state`` in the frame's camera, projected but not yet composited (None outside a training
+    # step; a term that needs it then prepares its own)
+    screen: PreparedRender | None = None
 
 
 class LossTerm:
@@ -308,8 +311,9 @@ class FlowMatchingLoss(LossTerm):
         if self._pending is None:
             return None
         pair, target = self._pending
+        screen = inputs.screen or inputs.model.prepare_render(inputs.state, inputs.frame.camera)
         return supervised_flow_channels(
-            inputs.model, inputs.frame.camera, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
+            inputs.model, screen, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
             inputs.deforming, flow_camera_t1(pair, self.config), target.depth_change is not None,
             integration=self.config.velocity_integration,
         )

@@ -43,6 +43,7 @@ from pidg.flow import FlowCache, check_flow_viewpoints, open_flow_cache
 from pidg.metrics import psnr
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.parallel_linear import matmul_threads
+from pidg.render import composite
 from pidg.training.config import TrainConfig, describe_schedule
 from pidg.training.decoupling import StaticDynamicDecoupling
 from pidg.training.densification import DensificationStrategy
@@ -178,11 +179,13 @@ class Trainer:
         deforming = self.deformation_active()
         with timer.phase("deformation"):
             state = model.at(frame.time, regularize=True) if deforming else model.canonical()
-        inputs = StepInputs(step, frame, model, state, deforming)
+        with timer.phase("render"):  # projected first: a term asks it which Gaussians reach its pixels
+            screen = model.prepare_render(state, frame.camera)
+        inputs = StepInputs(step, frame, model, state, deforming, screen)
         terms = [term for term in self.loss_terms if term.active(step)]
         slices, channels, pixels = self._render_features(terms, inputs)
         with timer.phase("render"):
-            out = model.render_state(state, frame.camera, channels, feature_pixels=pixels)
+            out = composite(screen, channels, feature_pixels=pixels)
         loss: Tensor | None = None
         parts: dict[str, float] = {}
         features = _split_features(out.features, slices)

@@ -31,8 +31,8 @@ def test_step_bench_times_steady_state_steps(tmp_path, monkeypatch):
     cfg.gaussians = dataclasses.replace(cfg.gaussians, init_opacity=0.8)
     cfg.output = dataclasses.replace(cfg.output, dir=tmp_path / "runs")
     renders = []
-    original = DynamicGaussians.render_state
-    monkeypatch.setattr(DynamicGaussians, "render_state", lambda self, *a, **k: renders.append(1) or original(self, *a, **k))
+    original = DynamicGaussians.prepare_render  # every render starts here
+    monkeypatch.setattr(DynamicGaussians, "prepare_render", lambda self, *a, **k: renders.append(1) or original(self, *a, **k))
     warmup, iterations = 3, 4
     results = run_step_bench(
         root, cfg, ["base", "full"], downscale=None, gaussians=200, iterations=iterations, warmup=warmup, chunk=2,

@@ -69,6 +69,9 @@ def test_static_gaussians_stay_canonical_and_have_no_velocity(scene):
         field_v, _ = model.field_values(at.means, 0.7)
         assert torch.count_nonzero(v[~dynamic]) == 0
         torch.testing.assert_close(v[dynamic], field_v[dynamic])
+        # some rows only: mixed, all dynamic (no gather or scatter), all static (no field evaluation)
+        for rows in (torch.tensor([4, 0, 7, 3, 8]), dynamic.nonzero().squeeze(1)[:4], (~dynamic).nonzero().squeeze(1)[:4]):
+            torch.testing.assert_close(model.velocities(0.7, at.means[rows], rows=rows), v[rows])
 
 
 def test_a_model_without_a_material_field_says_so(scene):
@@ -132,7 +135,7 @@ def test_flow_channels_of_the_gaussians_reaching_the_supervised_pixels_give_the_
             p.grad = None
         state = model.at(frame.time)
         if subset:
-            channels = supervised_flow_channels(model, frame.camera, state, frame.time, t1, dt, supervised)
+            channels = supervised_flow_channels(model, model.prepare_render(state, frame.camera), state, frame.time, t1, dt, supervised)
         else:
             channels = flow_channels(model, frame.camera, state, model.at(t1), frame.time, dt)
         out = model.render_state(state, frame.camera, channels, feature_pixels=supervised if tiles else None)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from pidg.render import Camera
-from pidg.render.api import gaussians_reaching, project, rasterize
+from pidg.render.api import gaussians_reaching, prepare_render, project, rasterize
 from pidg.render.footprint import footprints_touching
 from pidg.render.rasterize_cpu import gaussians_reaching_cpu
 from pidg.render.scenes import GaussianScene, orbit_camera, random_scene
@@ -31,8 +31,8 @@ def pixel_mask(camera: Camera, density: float, seed: int) -> torch.Tensor:
 
 
 def reaching(scene: GaussianScene, camera: Camera, pixels: torch.Tensor, backend: str = "cpu") -> torch.Tensor:
-    proj = project(scene.means, scene.quats, scene.scales, scene.opacities, camera, backend)
-    return gaussians_reaching(proj, scene.opacities, pixels, backend)
+    screen = prepare_render(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, backend=backend)
+    return gaussians_reaching(screen, pixels)
 
 
 @pytest.mark.parametrize("density", [0.0, 0.03, 0.4])
@@ -122,3 +122,37 @@ def test_no_gaussians_and_wide_tiles():
     with pytest.raises(ValueError, match="tiles up to 16 pixels"):
         gaussians_reaching_cpu(torch.zeros(1, 2), torch.ones(1, 3), torch.ones(1), torch.ones(1), torch.ones(1, 2, dtype=torch.int32),
                                torch.ones(8, 8, dtype=torch.bool), tile_size=32)
+
+
+def test_a_prepared_render_bins_once_for_the_reaching_test_and_the_compositing(monkeypatch):
+    """The flow loss asks which Gaussians reach its pixels between the render's projection and its compositing: both
+    read one set of tile lists, and the set is the one a separate binning gives."""
+    import pidg.render.api as api
+    from pidg.render.api import composite
+
+    camera = orbit_camera(48, 40)
+    scene = random_scene(300, camera, pixel_sigma=(1.0, 6.0), opacity=(0.5, 0.99), extent=0.4, seed=21)
+    pixels = pixel_mask(camera, 0.05, seed=9)
+    calls = []
+    original = api.bin_gaussians
+    monkeypatch.setattr(api, "bin_gaussians", lambda *a, **k: calls.append(1) or original(*a, **k))
+    screen = prepare_render(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, backend="cpu")
+    found = gaussians_reaching(screen, pixels)
+    features = torch.ones(scene.means.shape[0], 1)
+    out = composite(screen, features, feature_pixels=pixels)
+    assert len(calls) == 1
+    proj = screen.projection
+    assert torch.equal(found, gaussians_reaching_cpu(proj.means2d, proj.conics, scene.opacities, proj.depths, proj.radii, pixels))
+    assert torch.equal(found, weighted_on(scene, camera, pixels, "cpu"))
+    whole = rasterize(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, features=features,
+                      feature_pixels=pixels, backend="cpu")
+    assert torch.equal(out.rgb, whole.rgb) and torch.equal(out.features, whole.features)
+    other = prepare_render(scene.means[:-1], scene.quats[:-1], scene.opacities[:-1], scene.colors[:-1], camera,
+                           scales=scene.scales[:-1], backend="cpu")
+    with pytest.raises(ValueError, match="tile lists were made for other Gaussians"):
+        gaussians_reaching_cpu(proj.means2d[:-1], proj.conics[:-1], scene.opacities[:-1], proj.depths[:-1], proj.radii[:-1],
+                               pixels, bins=screen.bins)
+    assert other.bins is not screen.bins
+    torch_screen = prepare_render(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, backend="torch")
+    with pytest.raises(ValueError, match="tile lists belong to the cpu backend"):
+        torch_screen.bins

@@ -220,8 +220,8 @@ def test_total_flow_target_is_the_optical_flow_and_is_built_once(scene, tmp_path
     trainer = Trainer(cfg, scene)
     flow_term = next(term for term in trainer.loss_terms if term.name == "lpfm")
     renders = []
-    original = trainer.model.render_state
-    trainer.model.render_state = lambda *a, **k: renders.append(1) or original(*a, **k)  # count every render
+    original = trainer.model.prepare_render
+    trainer.model.prepare_render = lambda *a, **k: renders.append(1) or original(*a, **k)  # every render starts here
     trainer.train()
     assert len(renders) == 20  # the step's own render only: no depth render for targets
     assert any(h.get("lpfm_valid_pixels", 0) > 0 for h in trainer.history)
@@ -261,8 +261,8 @@ def test_flow_targets_reuse_the_depth_of_frame_t1s_training_render(scene, tmp_pa
     cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=16)  # > 15, the longest gap between two visits
     trainer = Trainer(cfg, scene)
     renders: list[int] = []
-    original = trainer.model.render_state
-    trainer.model.render_state = lambda *a, **k: renders.append(trainer.step) or original(*a, **k)
+    original = trainer.model.prepare_render
+    trainer.model.prepare_render = lambda *a, **k: renders.append(trainer.step) or original(*a, **k)  # every render starts here
     trainer.train()
     later = [s for s in renders if s >= len(scene.train)]  # every frame has been trained once
     assert later == list(range(len(scene.train), 40))  # one render per step: the step's own
