@@ -82,11 +82,12 @@ def supervised_flow_channels(
     integration: VelocityIntegration = "euler",
 ) -> Tensor:
     """:func:`flow_channels` [N, C] for a loss that reads the rendered flows only at ``supervised`` pixels [H, W]
-    of camera t, to be composited into ``screen``, the render of ``state_t`` in camera t (``prepare_render``): rows of
-    Gaussians that add nothing there are zero (:func:`pidg.render.api.gaussians_reaching`, on the render's own
-    projection and tile lists: on the cpu backend those the compositor gives no weight at any of them, hidden or too
-    faint; elsewhere those whose footprint misses them all), so the deformation to t+1 (``t1``), the velocities and
-    the flow channels are computed, and differentiated, for the others only. The loss and its gradients are those of the full channels.
+    of camera t, to be composited into ``screen``, the render of ``state_t`` in camera t (``prepare_render``): rows
+    of Gaussians that add nothing there are zero (:func:`pidg.render.api.gaussians_reaching`, on the render's own
+    projection and tile lists: on the cpu backend those the compositor gives no weight at any of them, hidden or
+    too faint; elsewhere those whose footprint misses them all), so the deformation to t+1 (``t1``), the velocities
+    and the flow channels are computed, and differentiated, for the others only. The loss and its gradients are
+    those of the full channels.
     ``deforming`` False (a static warm-up): the Gaussians at t+1 are the canonical ones. ``camera_t1``: as in
     :func:`flow_channels`. ``depth_change``: with the depth-change channels (:mod:`pidg.flow.gaussian_flow`).
     ``integration``: how the velocity flow carries the particles (:func:`interval_velocity`)."""

@@ -311,7 +311,7 @@ class FlowMatchingLoss(LossTerm):
         if self._pending is None:
             return None
         pair, target = self._pending
-        screen = inputs.screen or inputs.model.prepare_render(inputs.state, inputs.frame.camera)
+        screen = inputs.screen if inputs.screen is not None else inputs.model.prepare_render(inputs.state, inputs.frame.camera)
         return supervised_flow_channels(
             inputs.model, screen, inputs.state, inputs.frame.time, pair.frame1.time, pair.dt, target.valid,
             inputs.deforming, flow_camera_t1(pair, self.config), target.depth_change is not None,

@@ -70,6 +70,35 @@ def test_adapter_plumbing_against_the_documented_contract(monkeypatch, isotropic
     torch.testing.assert_close(means_b.grad, means.grad, atol=1e-5, rtol=1e-5)
 
 
+def test_the_two_stage_render_takes_gsplat_the_same_way(monkeypatch):
+    """``prepare_render`` / ``gaussians_reaching`` / ``composite`` on the gsplat backend (CUDA's path, here against the
+    stand-in, the backend forced for CPU tensors): no projection of its own (gsplat projects inside), the footprint
+    superset from the torch projection for the reaching test, and the image, depth and features read at the asked
+    pixels' tile rows as the torch reference renders them."""
+    import pidg.render.api as api
+    from pidg.render.api import composite, gaussians_reaching, prepare_render
+    from pidg.render.footprint import footprints_touching
+
+    monkeypatch.setitem(sys.modules, "gsplat", _fake_gsplat(isotropic_radii=False))
+    monkeypatch.setattr(api, "resolve_backend", lambda backend, device: "gsplat" if backend == "gsplat" else "torch")
+    camera = orbit_camera(40, 32)
+    scene = random_scene(300, camera, n_features=5, seed=3)
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    pixels = torch.zeros(32, 40, dtype=torch.bool)
+    pixels[3:5, 20:23] = True
+    pixels[25, 2] = True
+    screen = prepare_render(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, background=bg, backend="gsplat")
+    assert screen.backend == "gsplat" and screen.projection is None
+    proj = project_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, camera)
+    assert torch.equal(gaussians_reaching(screen, pixels), footprints_touching(proj.means2d, proj.radii, pixels))
+    out = composite(screen, scene.features, feature_pixels=pixels)
+    ref = rasterize(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, features=scene.features,
+                    background=bg, backend="torch", feature_pixels=pixels)
+    for name in ("rgb", "alpha", "depth", "features"):
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name), atol=1e-5, rtol=1e-5, msg=name)
+    assert bool(out.features[pixels].abs().sum() > 0) and not out.features[10:20].any()  # rows without a read pixel: 0
+
+
 def test_missing_gsplat_names_the_install(monkeypatch):
     monkeypatch.setitem(sys.modules, "gsplat", None)  # import fails
     camera = orbit_camera(8, 8)
