@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, Range, validate_config
-from pidg.errors import NonFiniteError
+from pidg.errors import NonFiniteError, all_finite
 from pidg.models.deformation.base import (
     GROUP_GRID,
     GROUP_MLP,
@@ -279,10 +279,10 @@ class MaterialField(nn.Module):
                 f"MaterialField: particle index out of range [0, {self.num_particles}): min {lo}, max {hi} "
                 "(the table has one row per initial particle, GaussianModel.num_particles)"
             )
-        if not bool(torch.isfinite(x).all()):
+        if not all_finite(x.detach()):
             bad = torch.nonzero(~torch.isfinite(x).all(dim=1)).squeeze(1)
             raise NonFiniteError(f"MaterialField: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
-        if not bool(torch.isfinite(times).all()):
+        if not all_finite(times.detach()):
             raise NonFiniteError("MaterialField: non-finite times")
         return x, times
 
@@ -295,19 +295,12 @@ class MaterialField(nn.Module):
         scale = torch.cat([(0.5 * (rs - 1)) / half, half.new_full((1,), float(rt - 1))])
         return p_space, p_time, scale
 
-    def _plane_lookups(self, x: Tensor, times: Tensor, derivatives: bool = True) -> tuple[tuple[Tensor, Tensor | None, Tensor | None], Tensor]:
-        """Values, d/dpa, d/dpb of the six planes [M, 6, C] (XY, XZ, YZ, XT, YT, ZT; the derivatives None without
-        ``derivatives``) and dp/d(x, y, z, t)."""
-        spatial, temporal, scale = self._spatial_and_temporal_lookups(x, times, derivatives)
-        if not derivatives:
-            return (torch.cat([spatial[0], temporal[0]], dim=1), None, None), scale
-        return tuple(torch.cat([s, t], dim=1) for s, t in zip(spatial, temporal)), scale  # type: ignore[return-value,arg-type]
-
-    def _spatial_and_temporal_lookups(
+    def _plane_lookups(
         self, x: Tensor, times: Tensor, derivatives: bool
     ) -> tuple[tuple[Tensor, Tensor | None, Tensor | None], tuple[Tensor, Tensor | None, Tensor | None], Tensor]:
-        """:meth:`_plane_lookups`' values (and derivatives) of the spatial planes [M, 3, C] and of the temporal
-        ones [M, 3, C], apart, and dp/d(x, y, z, t)."""
+        """Values, d/dpa and d/dpb of the spatial planes [M, 3, C] (XY, XZ, YZ) and, apart, of the temporal ones
+        [M, 3, C] (XT, YT, ZT) (the derivatives None without ``derivatives``), and dp/d(x, y, z, t) [4]. The feature
+        columns are the spatial planes', then the temporal ones', each plane's C channels together."""
         p_space, p_time, scale = self._plane_coordinates(x, times)
         backend = self.config.backend
         pa, pb = p_space.index_select(1, self.spatial_axis_a), p_space.index_select(1, self.spatial_axis_b)
@@ -329,23 +322,26 @@ class MaterialField(nn.Module):
         return F.embedding(index, self.index_embedding, sparse=True)
 
     def _features(self, x: Tensor, times: Tensor, index: Tensor) -> Tensor:
-        # the six planes' columns in _plane_lookups' order (spatial, then temporal), without concatenating them first
-        (spatial, _, _), (temporal, _, _), _ = self._spatial_and_temporal_lookups(x, times, derivatives=False)
+        (spatial, _, _), (temporal, _, _), _ = self._plane_lookups(x, times, derivatives=False)
         fourier, _ = self._fourier(times, derivative=False)
         embedding = self._embed(index)
         return torch.cat([spatial.flatten(1), temporal.flatten(1), fourier, embedding], dim=-1)
 
     def _features_with_tangents(self, x: Tensor, times: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
         """Features [M, D] and their derivatives along x, y, z, t [4, M, tangent_dim] (the embedding's are 0)."""
-        (planes, d_pa, d_pb), scale = self._plane_lookups(x, times)
-        assert d_pa is not None and d_pb is not None
-        (sa_space, sb_space), (sa_time, sb_time) = _axis_scales(SPATIAL_AXES, scale), _axis_scales(TEMPORAL_AXES, scale)
-        scale_a, scale_b = torch.cat([sa_space, sa_time], dim=1), torch.cat([sb_space, sb_time], dim=1)  # [4, 6]
-        m = x.shape[0]
-        d_planes = d_pa * scale_a[:, None, :, None] + d_pb * scale_b[:, None, :, None]  # [4, M, 6, C]
+        spatial, temporal, scale = self._plane_lookups(x, times, derivatives=True)
+        m, c = x.shape[0], spatial[0].shape[-1]
+        tangents = []
+        for (_, d_pa, d_pb), axes in ((spatial, SPATIAL_AXES), (temporal, TEMPORAL_AXES)):
+            assert d_pa is not None and d_pb is not None
+            scale_a, scale_b = _axis_scales(axes, scale)  # [4, 3]
+            # one scale per feature column, so that the products run along rows of 3C contiguous floats: broadcast over
+            # [4, M, 3, C] the same products took ~2.5x longer, forward and backward (C = 8)
+            cols_a, cols_b = scale_a.repeat_interleave(c, dim=1), scale_b.repeat_interleave(c, dim=1)
+            tangents.append(d_pa.flatten(1) * cols_a[:, None, :] + d_pb.flatten(1) * cols_b[:, None, :])  # [4, M, 3C]
         fourier, d_fourier = self._fourier(times)
         assert d_fourier is not None
-        d_fourier = torch.cat([d_fourier.new_zeros(3, m, d_fourier.shape[1]), d_fourier[None]], dim=0)
-        tangent = torch.cat([d_planes.flatten(2), d_fourier], dim=-1)
+        tangents.append(torch.cat([d_fourier.new_zeros(3, m, d_fourier.shape[1]), d_fourier[None]], dim=0))
         embedding = self._embed(index)
-        return torch.cat([planes.flatten(1), fourier, embedding], dim=-1), tangent
+        features = torch.cat([spatial[0].flatten(1), temporal[0].flatten(1), fourier, embedding], dim=-1)
+        return features, torch.cat(tangents, dim=-1)

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from pidg.errors import NonFiniteError
+from pidg.errors import NonFiniteError, all_finite
 from pidg.models.deformation.base import times_column
 from pidg.models.jet import SYMMETRIC_INDEX, FieldJet
 from pidg.models.time_axis import TimeAxis
@@ -128,7 +128,7 @@ def cmr_loss(
         raise ValueError(f"cmr_loss: index must be [N] = [{n}], got {list(index.shape)}")
     if n == 0:
         raise ValueError("cmr_loss: no particles")
-    if not bool(torch.isfinite(positions.detach()).all()):  # all N rows: a broken deformation, sampled or not
+    if not all_finite(positions.detach()):  # all N rows: a broken deformation, sampled or not
         bad = torch.nonzero(~torch.isfinite(positions.detach()).all(dim=1)).squeeze(1)
         raise NonFiniteError(f"cmr_loss: non-finite positions in {bad.numel()} rows, e.g. rows {bad[:5].tolist()}")
     times = times_column(t, n, positions)

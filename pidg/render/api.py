@@ -11,7 +11,7 @@ from typing import Literal, get_args
 import torch
 from torch import Tensor
 
-from pidg.errors import NonFiniteError
+from pidg.errors import NonFiniteError, all_finite
 from pidg.render.camera import Camera
 from pidg.render.output import RenderOutput
 from pidg.render.projection import TILE_SIZE, Projection, project_gaussians, tile_rows_touched
@@ -78,8 +78,7 @@ def _check_like_means(name: str, t: Tensor, means: Tensor) -> None:
         raise TypeError(f"rasterize: {name} has dtype {t.dtype} but means has {means.dtype}; use one float dtype")
     if t.device != means.device:
         raise ValueError(f"rasterize: {name} is on {t.device} but means is on {means.device}")
-    # a NaN or inf anywhere makes the sum non-finite: one reduction instead of an elementwise pass per input
-    if t.numel() and not torch.isfinite(t.sum()) and not torch.isfinite(t).all():
+    if not all_finite(t.detach()):
         bad = (~torch.isfinite(t)).reshape(t.shape[0], -1).any(dim=1).nonzero()[:5].flatten().tolist()
         raise NonFiniteError(f"rasterize: {name} contains NaN or infinite values (first bad Gaussians: {bad})")
 
