@@ -36,3 +36,29 @@ def test_zeroed_buffer_pool_reuses_a_buffer_only_once_released():
     again = pool.zeros(5, 3)
     assert id(again) == second_id and not again.any()  # released: reused, and zeroed again
     assert pool.zeros(2, 2, 2).shape == (2, 2, 2)  # any number of dimensions
+
+
+def test_zeroed_buffer_pool_re_zeroes_only_the_rows_its_holder_announced():
+    """A holder that writes some rows only says which; the next holder gets those rows zeroed (int rows, or a bool mask
+    over the first axis), and a holder that announced none gets the whole buffer zeroed."""
+    from pidg.kernel_math import ZeroedBufferPool
+
+    pool = ZeroedBufferPool(per_shape=1)
+    buf = pool.zeros(6, 4, rows=np.array([1, 4]))
+    buf[[1, 4]] = 3.0
+    buf_id = id(buf)
+    del buf
+    again = pool.zeros(6, 4, rows=np.array([True, False, False, False, False, True]))
+    assert id(again) == buf_id and not again.any()
+    again[[0, 5]] = 2.0
+    del again
+    whole = pool.zeros(6, 4)  # the previous holder wrote rows 0 and 5: zeroed; this one announces nothing
+    assert not whole.any()
+    whole[:] = 1.0
+    del whole
+    assert not pool.zeros(6, 4).any()  # all of it zeroed again
+    marked = pool.zeros(6, 4, rows=np.array([2]))
+    marked[2] = 5.0
+    marked[3] = 9.0  # outside the announced rows: the pool does not clean it (the caller's contract)
+    del marked
+    assert pool.zeros(6, 4)[3].tolist() == [9.0] * 4

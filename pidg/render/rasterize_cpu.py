@@ -648,7 +648,8 @@ class _CompositeCPU(torch.autograd.Function):
         # (fresh zeroed pages fault in where the kernel writes: ~1.2 ms a step for 8 flow channels at 400x400)
         everywhere = bool((row_dims >= dim).all())
         shape = (height, width, dim - image_channels)
-        extra = np.empty(shape, dtype=np.float32) if everywhere else ZEROED_BUFFERS.zeros(*shape)
+        # the image rows some tile row of which composites the extra channels: the only ones the kernel writes
+        extra = np.empty(shape, dtype=np.float32) if everywhere else ZEROED_BUFFERS.zeros(*shape, rows=(row_dims > image_channels).any(axis=1))
         trans = np.empty((height, width), dtype=np.float32)
         end = np.empty((height, width), dtype=np.int32)
         feats, extra_feats = _split_columns(features, image_channels)
