@@ -52,8 +52,8 @@ class ZeroedBufferPool:
 
     def __init__(self, per_shape: int = 4) -> None:
         self.per_shape = per_shape
-        self._buffers: dict[tuple[int, ...], list[np.ndarray]] = {}
-        self._written: dict[tuple[int, ...], list[np.ndarray | None]] = {}  # per buffer: rows its holder may write
+        # per shape: [buffer, the rows its last holder said it writes (None: any)] for each pooled buffer
+        self._slots: dict[tuple[int, ...], list[list]] = {}
         self._lock = threading.Lock()
 
     def zeros(self, *shape: int, rows: np.ndarray | None = None) -> np.ndarray:
@@ -61,24 +61,23 @@ class ZeroedBufferPool:
         bool mask over that axis) the caller will write; None: any."""
         written = None if rows is None else np.array(rows, copy=True)
         with self._lock:
-            pool = self._buffers.setdefault(shape, [])
-            marks = self._written.setdefault(shape, [])
-            for i in range(len(pool)):
-                if sys.getrefcount(pool[i]) == _UNREFERENCED:  # only the pool holds it
-                    if marks[i] is None:
-                        _zero(pool[i].reshape(-1))
+            slots = self._slots.setdefault(shape, [])
+            for slot in slots:
+                if sys.getrefcount(slot[0]) == _UNREFERENCED:  # only the pool holds it
+                    buf, dirty = slot
+                    if dirty is None:
+                        _zero(buf.reshape(-1))
                     else:
-                        pool[i][marks[i]] = 0.0
-                    marks[i] = written
-                    return pool[i]
+                        buf[dirty] = 0.0
+                    slot[1] = written
+                    return buf
             buf = np.zeros(shape, dtype=np.float32)
-            if len(pool) < self.per_shape:
-                pool.append(buf)
-                marks.append(written)
+            if len(slots) < self.per_shape:
+                slots.append([buf, written])
             return buf
 
 
-_UNREFERENCED = 2  # sys.getrefcount of an array held only by the pool's list: the list and the call's argument
+_UNREFERENCED = 2  # sys.getrefcount of an array held only by the pool's slot: the slot and the call's argument
 ZEROED_BUFFERS = ZeroedBufferPool()  # the process's pool
 
 
