@@ -81,6 +81,22 @@ _UNREFERENCED = 2  # sys.getrefcount of an array held only by the pool's slot: t
 ZEROED_BUFFERS = ZeroedBufferPool()  # the process's pool
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _quotient_where_at_least(numerator, denominator, floor, out):  # pragma: no cover - compiled
+    for i in prange(numerator.shape[0]):
+        d = denominator[i]
+        out[i] = numerator[i] / d if d >= floor else f32(0.0)
+
+
+def quotient_where_at_least(numerator: Tensor, denominator: Tensor, floor: float) -> Tensor:
+    """numerator / denominator where denominator >= ``floor`` (> 0), else 0, for float32 CPU tensors of one shape,
+    without a gradient, in one pass (a render's opaque depth: the torch form's four full-image operations cost
+    0.65 ms a training step at 400x400, this 0.05)."""
+    out = np.empty(numerator.numel(), dtype=np.float32)
+    _quotient_where_at_least(float32_array(numerator).reshape(-1), float32_array(denominator).reshape(-1), f32(floor), out)
+    return torch.from_numpy(out).reshape(numerator.shape)
+
+
 @intrinsic
 def float32_from_bits(typingctx, bits):  # pragma: no cover - compiled
     """Reinterpret an int32's bits as a float32 (LLVM bitcast): 2^n built in a register, where a table lookup

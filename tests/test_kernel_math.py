@@ -62,3 +62,15 @@ def test_zeroed_buffer_pool_re_zeroes_only_the_rows_its_holder_announced():
     marked[3] = 9.0  # outside the announced rows: the pool does not clean it (the caller's contract)
     del marked
     assert pool.zeros(6, 4)[3].tolist() == [9.0] * 4
+
+
+def test_quotient_where_at_least_matches_its_definition():
+    from pidg.kernel_math import quotient_where_at_least
+
+    num = torch.tensor([[1.0, 2.0, 3.0], [4.0, -5.0, 6.0]])
+    den = torch.tensor([[0.5, 0.25, 0.0], [2.0, 1.0, 0.2499]])
+    out = quotient_where_at_least(num, den, 0.25)
+    assert out.dtype == torch.float32 and out.shape == (2, 3)
+    assert out.tolist() == [[2.0, 8.0, 0.0], [2.0, -5.0, 0.0]]
+    strided = quotient_where_at_least(num.T, den.T, 0.25)  # any layout: the kernel reads a contiguous copy
+    assert strided.tolist() == out.T.tolist()

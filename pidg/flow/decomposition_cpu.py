@@ -38,7 +38,7 @@ def _bilinear_setup(coord, size):  # pragma: no cover - compiled
     g = coord * f32(2.0 / size) - f32(1.0)
     ix = ((g + f32(1.0)) * f32(size) - f32(1.0)) * f32(0.5)
     ix = min(max(ix, f32(0.0)), f32(size - 1))
-    i0 = int(math.floor(ix))
+    i0 = int(ix)  # ix >= 0: truncation is the floor, without floor's libm call
     w1 = ix - f32(i0)
     i1 = min(i0 + 1, size - 1)
     return i0, i1, w1
@@ -86,13 +86,13 @@ def _warp_to_frame0(motion, valid1, forward, valid_forward, derive_mask, thresho
             ty = py + forward[i, j, 1]
             inside = math.isfinite(tx) and math.isfinite(ty) and tx >= 0 and tx <= width and ty >= 0 and ty <= height
             fx, fy, ok = f32(0.0), f32(0.0), False
-            if inside:
+            if inside and valid_forward[i, j]:
                 x0, x1, wx = _bilinear_setup(tx, width)
                 y0, y1, wy = _bilinear_setup(ty, height)
                 a, b = f32(1.0) - wx, f32(1.0) - wy
                 w00, w01, w10, w11 = a * b, wx * b, a * wy, wx * wy
                 m = (w00 * f32(valid1[y0, x0]) + w01 * f32(valid1[y0, x1])) + (w10 * f32(valid1[y1, x0]) + w11 * f32(valid1[y1, x1]))
-                ok = m > f32(1.0 - 1e-6) and valid_forward[i, j]
+                ok = m > f32(1.0 - 1e-6)
                 if ok:
                     fx = (w00 * motion[y0, x0, 0] + w01 * motion[y0, x1, 0]) + (w10 * motion[y1, x0, 0] + w11 * motion[y1, x1, 0])
                     fy = (w00 * motion[y0, x0, 1] + w01 * motion[y0, x1, 1]) + (w10 * motion[y1, x0, 1] + w11 * motion[y1, x1, 1])

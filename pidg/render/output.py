@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from pidg.kernel_math import quotient_where_at_least
+
 # A pixel's expected depth counts only where the render is mostly opaque: half-transparent pixels mix foreground and
 # background depths, and empty ones have none. Shared by the flow target, the depth loss and generated depth maps.
 OPAQUE_ALPHA = 0.5
@@ -50,6 +52,14 @@ class RenderOutput:
         """Expected depth [H, W] where alpha >= ``min_alpha``, else 0 (= unknown): the depth map a sensor would give."""
         if min_alpha <= 0:
             raise ValueError(f"opaque_depth: min_alpha must be > 0, got {min_alpha}")
+        depth, alpha = self.depth, self.alpha
+        needs_grad = torch.is_grad_enabled() and (depth.requires_grad or alpha.requires_grad)
+        if not needs_grad and _float32_cpu(depth, alpha) and depth.shape == alpha.shape:  # a kept map: one pass
+            return quotient_where_at_least(depth, alpha, min_alpha)
         # a product with the mask rather than torch.where (x4 slower on a CPU): the clamp keeps the masked-out
         # quotients finite, so they multiply to exact zeros, with zero gradients
-        return self.depth / self.alpha.clamp_min(min_alpha) * (self.alpha >= min_alpha)
+        return depth / alpha.clamp_min(min_alpha) * (alpha >= min_alpha)
+
+
+def _float32_cpu(*tensors: Tensor) -> bool:
+    return all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors)

@@ -339,6 +339,11 @@ def test_invariant_of_reads_either_layout_with_the_same_values_and_gradients():
     (dense.invariant_of(rows) * weights).sum().backward()
     assert torch.equal(grad_compact, values.grad)
     assert DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3)).invariant_of(rows) is None
+    moving = torch.tensor([8, 1, 11])  # only deformed rows: the same values, unmasked
+    assert torch.equal(compact.invariant_of(moving), spread[moving])
+    none_deformed = DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3), invariant=values[:0],
+                                      invariant_rows=deformed[:0])
+    assert torch.equal(none_deformed.invariant_of(rows), torch.zeros(rows.numel(), d))
 
 
 @pytest.mark.parametrize("kind", ["mlp", "identity"])

@@ -81,3 +81,20 @@ def test_opaque_depth_is_the_expected_depth_where_opaque_and_zero_elsewhere():
     assert alpha.grad.tolist() == [-2.0, -6.0, 0.0, 0.0]  # -depth x alpha / alpha^2 where opaque
     with pytest.raises(ValueError, match="min_alpha must be > 0"):
         out.opaque_depth(0.0)
+
+
+def test_a_kept_opaque_depth_takes_the_one_pass_kernel_with_the_same_values():
+    """Without a gradient (the flow term keeps a depth map every step), float32 CPU maps take
+    ``quotient_where_at_least``: the torch form's values, alpha exactly at the threshold and alpha 0 included."""
+    gen = torch.Generator().manual_seed(3)
+    alpha = torch.rand(37, 41, generator=gen)
+    alpha[0, :4] = torch.tensor([0.5, 0.0, 1.0, 0.4999999])
+    composited = torch.rand(37, 41, generator=gen) * 4 * alpha
+    none = torch.zeros(0, 2)
+    out = RenderOutput(torch.zeros(37, 41, 3), alpha, composited, None, none, torch.zeros(0, 2, dtype=torch.int32), torch.zeros(0))
+    reference = composited / alpha.clamp_min(0.5) * (alpha >= 0.5)
+    with torch.no_grad():
+        kept = out.opaque_depth(0.5)
+    assert kept.shape == (37, 41) and not kept.requires_grad
+    torch.testing.assert_close(kept, reference, rtol=0, atol=0)
+    assert kept[0, :4].tolist() == [composited[0, 0].item() / 0.5, 0.0, composited[0, 2].item(), 0.0]

@@ -13,10 +13,10 @@ import torch
 from pidg.checkpoint import load_checkpoint
 from pidg.cli import main
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
-from pidg.errors import TrainingFailed
+from pidg.errors import NonFiniteError, TrainingFailed
 from pidg.training import losses
 from pidg.training.optim import ScheduledOptimizer
-from pidg.training.trainer import Trainer
+from pidg.training.trainer import Trainer, _check_finite
 
 
 def nan_photometric_loss(monkeypatch, steps):
@@ -222,3 +222,29 @@ def test_a_bad_choice_is_one_line_too(capsys):
         main(["train", "--physics", "pde"])
     err = capsys.readouterr().err.strip().splitlines()
     assert exit_info.value.code == 2 and len(err) == 1 and "invalid choice: 'pde'" in err[0] and "pidg train -h" in err[0]
+
+
+def test_the_finiteness_check_reads_a_sparse_gradient_parameter_at_its_updated_rows():
+    """A parameter with a sparse gradient (the material field's index embedding) is checked at the rows its sparse
+    optimiser updated: a NaN written there is found and named; the other rows are not read (no update touched
+    them), while a dense-gradient parameter is read whole."""
+    table = torch.nn.Parameter(torch.zeros(6, 2))
+    table.grad = torch.sparse_coo_tensor(torch.tensor([[1, 3, 1]]), torch.ones(3, 2), (6, 2))
+    dense = torch.nn.Parameter(torch.zeros(4))
+    dense.grad = torch.zeros(4)
+    named = [("embedding", table), ("dense", dense)]
+    with torch.no_grad():
+        table[0] = float("nan")  # a row no gradient touched this step
+    _check_finite("parameters", named, 0)
+    with torch.no_grad():
+        table[3, 1] = float("inf")
+    with pytest.raises(NonFiniteError, match=r"non-finite parameters at step 0 in embedding$"):
+        _check_finite("parameters", named, 0)
+    with torch.no_grad():
+        table[3, 1] = 0.0
+        dense[2] = float("nan")
+    with pytest.raises(NonFiniteError, match=r"in dense$"):
+        _check_finite("parameters", named, 0)
+    table.grad = torch.sparse_coo_tensor(torch.tensor([[2]]), torch.tensor([[float("nan"), 0.0]]), (6, 2))
+    with pytest.raises(NonFiniteError, match=r"non-finite gradients at step 0 in embedding$"):
+        _check_finite("gradients", named[:1], 0, grads=True)

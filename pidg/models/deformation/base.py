@@ -55,11 +55,17 @@ class DeformedGaussians:
             return None
         if self.invariant_rows is None:
             return self.invariant.index_select(0, rows)
-        position = torch.full((self.means.shape[0],), -1, dtype=torch.long, device=rows.device)
-        position[self.invariant_rows] = torch.arange(self.invariant_rows.numel(), device=rows.device)
-        at = position.index_select(0, rows)
-        deformed = (at >= 0).unsqueeze(1).to(self.invariant.dtype)
-        return self.invariant.index_select(0, at.clamp_min(0)) * deformed
+        deformed_rows = self.invariant_rows
+        if deformed_rows.numel() == 0:
+            return self.invariant.new_zeros(rows.numel(), self.invariant.shape[1])
+        # each asked Gaussian's place among the deformed ones (ascending): a search over the few asked rows, not a
+        # position map over all N built per call
+        at = torch.searchsorted(deformed_rows, rows).clamp_max(deformed_rows.numel() - 1)
+        found = deformed_rows.index_select(0, at) == rows
+        gathered = self.invariant.index_select(0, at)
+        if bool(found.all()):  # the flow loss's rows are moving Gaussians: no mask to apply
+            return gathered
+        return gathered * found.unsqueeze(1).to(gathered.dtype)
 
 
 @dataclass(frozen=True)
