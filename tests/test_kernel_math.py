@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from pidg.kernel_math import float32_array
+from pidg.kernel_math import float32_array, select_distinct_rows
 
 
 @pytest.mark.parametrize("requires_grad", [False, True])
@@ -74,3 +74,49 @@ def test_quotient_where_at_least_matches_its_definition():
     assert out.tolist() == [[2.0, 8.0, 0.0], [2.0, -5.0, 0.0]]
     strided = quotient_where_at_least(num.T, den.T, 0.25)  # any layout: the kernel reads a contiguous copy
     assert strided.tolist() == out.T.tolist()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_select_distinct_rows_is_index_select_with_its_gradient(dtype):
+    """select_distinct_rows (the flow loss's gather of supervised pixels) against index_select: values and gradients
+    equal, and a gradient still held is not overwritten by the next backward (on float32 CPU the gradient is a pooled
+    buffer)."""
+    g = torch.Generator().manual_seed(5)
+    image = torch.randn(400, 3, generator=g, dtype=dtype, requires_grad=True)
+    index = torch.randperm(400, generator=g)[: 400 // 3]
+    weights = [torch.randn(index.numel(), 3, generator=g, dtype=dtype) for _ in range(2)]
+    rows = select_distinct_rows(image, index)
+    assert torch.equal(rows, image.index_select(0, index))
+    (first,) = torch.autograd.grad((rows * weights[0]).sum(), image)
+    kept = first.clone()
+    (second,) = torch.autograd.grad((select_distinct_rows(image, index) * weights[1]).sum(), image)
+    (reference,) = torch.autograd.grad((image.index_select(0, index) * weights[1]).sum(), image)
+    assert torch.equal(second, reference) and torch.equal(first, kept)  # the held gradient is intact
+    assert not torch.equal(first, second)
+    del first, second
+    (third,) = torch.autograd.grad((select_distinct_rows(image, index[:5]) * weights[0][:5]).sum(), image)
+    (reference,) = torch.autograd.grad((image.index_select(0, index[:5]) * weights[0][:5]).sum(), image)
+    assert torch.equal(third, reference)  # a reused buffer is zero outside the new rows
+
+
+@pytest.mark.parametrize("gather_last", [True, False])
+@pytest.mark.parametrize("leaf", [True, False])
+def test_select_distinct_rows_keeps_other_gradients_out_of_its_pooled_buffer(gather_last, leaf):
+    """Autograd adds two gradients of one tensor in place into either when only it refers to that one: had the pooled
+    buffer been that one, the other gradient would fill rows the pool does not re-zero, and the buffer's next user
+    would start from them. Both orders of the two uses, on a leaf and on an intermediate tensor."""
+    from pidg.kernel_math import ZEROED_BUFFERS
+
+    n = 997  # a shape of its own in the process's pool
+    source = torch.randn(n, 4, requires_grad=True)
+    x = source if leaf else source * 1.0
+    index = torch.arange(0, n, 10)
+    if gather_last:
+        loss = (x * 3.0).sum() + select_distinct_rows(x, index).sum()
+    else:
+        loss = select_distinct_rows(x, index).sum() + (x * 3.0).sum()
+    loss.backward()
+    assert torch.equal(source.grad, torch.full((n, 4), 3.0).index_fill(0, index, 4.0))
+    source.grad = None
+    del loss, x
+    assert not ZEROED_BUFFERS.zeros(n, 4).any()  # the same buffer, released and re-zeroed at its rows

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import statistics
 from pathlib import Path
 from typing import Callable
 
@@ -75,14 +76,21 @@ def run_step_bench(
         trainer.timer.steps = 0
         trainer.train_seconds = 0.0
         trainers[name] = trainer
+    round_seconds: dict[str, list[float]] = {name: [] for name in trainers}
     for _ in range(0, iterations, chunk):
-        for trainer in trainers.values():
+        for name, trainer in trainers.items():
+            before = trainer.train_seconds
             trainer.train(trainer.step + chunk)
+            round_seconds[name].append(trainer.train_seconds - before)
     results = {}
+    first = next(iter(trainers))
     for name, trainer in trainers.items():
         summary = trainer.summary()
         results[name] = {
             "iterations_per_second": summary["iterations_per_second"],
+            # each round's step time over the first variant's in the same round: the spread says how far one
+            # bench's ratio can be trusted on a noisy machine
+            "round_ratios": [mine / max(theirs, 1e-12) for mine, theirs in zip(round_seconds[name], round_seconds[first])],
             "gaussians": summary["gaussians"],
             "step_breakdown_ms": summary["step_breakdown_ms"],
             "device": summary["device"],
@@ -168,7 +176,11 @@ def format_step_table(results: dict[str, dict], title: str) -> str:
         lines.append(f"  peak GPU memory of the bench process (all variants alive): {first['peak_gpu_memory_mb']:.0f} MB")
     for name, r in list(results.items())[1:]:
         ratio = first["iterations_per_second"] / max(r["iterations_per_second"], 1e-9)
-        lines.append(f"  {name}: step time x{ratio:.2f} of {next(iter(results))}")
+        line = f"  {name}: step time x{ratio:.2f} of {next(iter(results))}"
+        rounds = sorted(r.get("round_ratios", []))
+        if len(rounds) > 1:
+            line += f" (its {len(rounds)} rounds: x{rounds[0]:.2f} to x{rounds[-1]:.2f}, median x{statistics.median(rounds):.2f})"
+        lines.append(line)
     return "\n".join(lines)
 
 

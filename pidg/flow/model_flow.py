@@ -11,6 +11,7 @@ from torch import Tensor
 from pidg.flow.config import FlowConfig, VelocityIntegration
 from pidg.flow.decomposition import FlowTarget
 from pidg.flow.gaussian_flow import (
+    DECODE_MIN_ALPHA,
     decode_depth_changes_at,
     decode_flows,
     decode_flows_at,
@@ -18,8 +19,9 @@ from pidg.flow.gaussian_flow import (
     gaussian_flow_features,
 )
 from pidg.flow.lpfm import LPFMResult, depth_from_render, flow_target_for_pair, lpfm_loss
+from pidg.flow.lpfm_cpu import flow_l1_at_pixels_cpu
 from pidg.flow.preprocess import FlowPair
-from pidg.kernel_math import ZEROED_BUFFERS
+from pidg.kernel_math import select_distinct_rows
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.render import Camera, RenderOutput
@@ -116,47 +118,33 @@ def supervised_flow_channels(
     return out.index_copy(0, rows, sub.to(out.dtype))
 
 
-class _PixelRows(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, image: Tensor, index: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.save_for_backward(index)
-        ctx.shape = image.shape
-        return image.index_select(0, index)
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):  # type: ignore[override]
-        (index,) = ctx.saved_tensors
-        if grad.device.type == "cpu" and grad.dtype == torch.float32:
-            # a pooled buffer: a fresh zeroed one faults its pages in, 2.3 ms a step for a 400x400 render's 8 flow
-            # channels (torch.zeros; np.zeros' lazy pages fault in the scattered writes instead); only the rows
-            # written here are re-zeroed for its next user (0.5 ms a step for the whole image)
-            full = torch.from_numpy(ZEROED_BUFFERS.zeros(*ctx.shape, rows=index.numpy()))
-        else:
-            full = grad.new_zeros(ctx.shape)
-        return full.index_copy_(0, index, grad), None
-
-
-def pixel_rows(image: Tensor, index: Tensor) -> Tensor:
-    """``image.index_select(0, index)`` for a render's pixels as rows [H * W, C] and distinct pixel indices [P]:
-    its gradient puts each row back in its place (a copy: no pixel repeats) in a zero image, on the CPU one of
-    :data:`pidg.kernel_math.ZEROED_BUFFERS` (reused once the previous step's gradient is released)."""
-    return _PixelRows.apply(image, index)
-
-
-def supervised_flow_loss(features: Tensor, alpha: Tensor, target: FlowTarget, config: FlowConfig) -> LPFMResult:
+def supervised_flow_loss(
+    features: Tensor, alpha: Tensor, target: FlowTarget, config: FlowConfig, kernel: bool | None = None
+) -> LPFMResult:
     """:func:`pidg.flow.lpfm.lpfm_loss` of a render's flow channels [H, W, C] (alpha [H, W]) against ``target``,
     decoding and scoring only the target's valid pixels: the loss reads nothing else, and they are a few % of
     the image (moving objects, a share of the tiles). The same loss, diagnostics and gradients as decoding the
-    whole render with :func:`pidg.flow.gaussian_flow.decode_flows`."""
+    whole render with :func:`pidg.flow.gaussian_flow.decode_flows`. ``kernel``: decode and score in one numba
+    pass each way (:mod:`pidg.flow.lpfm_cpu`; the default for float32 CPU channels without depth-change ones) or,
+    False, with the torch functions (any device; the reference the tests compare with)."""
     index = target.valid.reshape(-1).nonzero().squeeze(1)  # row-major pixel indices y * W + x
     width = target.valid.shape[1]
-    features = pixel_rows(features.reshape(-1, features.shape[-1]), index)
-    alpha = pixel_rows(alpha.reshape(-1, 1), index).squeeze(1)
+    features = select_distinct_rows(features.reshape(-1, features.shape[-1]), index)
+    alpha = select_distinct_rows(alpha.reshape(-1, 1), index).squeeze(1)
     x, y = index % width, torch.div(index, width, rounding_mode="floor")
     centers = torch.stack([x, y], dim=-1).to(features.dtype) + 0.5
+    at = target.at(index)
+    if kernel is None:
+        kernel = features.device.type == "cpu" and features.dtype == torch.float32 and features.shape[-1] in (6, 8)
+    if kernel:
+        loss, count, epe_g, epe_v, size = flow_l1_at_pixels_cpu(
+            features, alpha, centers, at.flow.to(features.dtype), at.valid, DECODE_MIN_ALPHA, config.min_alpha,
+            config.lambda_gaussian, config.lambda_velocity,
+        )
+        return LPFMResult(loss, epe_g, epe_v, count, size)
     flow_g, flow_v, _ = decode_flows_at(features, alpha, centers)
     depth_changes = decode_depth_changes_at(features, alpha) if target.depth_change is not None else None
-    return lpfm_loss(flow_g, flow_v, target.at(index), alpha, config, depth_changes)
+    return lpfm_loss(flow_g, flow_v, at, alpha, config, depth_changes)
 
 
 @torch.no_grad()

@@ -7,7 +7,7 @@ import json
 
 import torch
 
-from pidg.bench.step import _load_trained_model, run_step_bench
+from pidg.bench.step import _load_trained_model, format_step_table, run_step_bench
 from pidg.checkpoint import CHECKPOINT_FILE
 from pidg.data import load_scene
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
@@ -42,6 +42,10 @@ def test_step_bench_times_steady_state_steps(tmp_path, monkeypatch):
     assert set(written["variants"]) == {"base", "full"} and written["machine"]["cpu_target"] and "git_commit" in written
     assert {"flow", "flow_target", "physics"} <= set(results["full"]["step_breakdown_ms"])
     assert "flow" not in results["base"]["step_breakdown_ms"]
+    # one ratio per interleaved round, to the first variant's round (itself: 1)
+    assert results["base"]["round_ratios"] == [1.0, 1.0]
+    assert len(results["full"]["round_ratios"]) == iterations // 2 and all(r > 0 for r in results["full"]["round_ratios"])
+    assert written["variants"]["full"]["round_ratios"] == results["full"]["round_ratios"]
     # base: one render per step; full: one per training frame to start from (its kept depths), then one per step
     assert len(renders) == 2 * (warmup + iterations) + n_train
 
@@ -70,3 +74,12 @@ def test_step_bench_from_a_run_starts_from_its_optimiser_moments(tmp_path):
         assert saved.keys() == loaded.keys() and len(saved) > 0
         assert all(torch.equal(saved[k]["exp_avg"], loaded[k]["exp_avg"]) for k in saved)
     assert "material" in trainer.optimizers and not trainer.optimizers["material"].optimizer.state
+
+
+def test_the_step_table_gives_the_ratio_with_its_rounds_spread():
+    def variant(rate, rounds):
+        return {"iterations_per_second": rate, "gaussians": 10, "step_breakdown_ms": {"render": 1.0}, "projected_minutes": 1.0,
+                "projected_iterations": 100, "round_ratios": rounds}
+
+    text = format_step_table({"base": variant(10.0, [1.0, 1.0, 1.0]), "full": variant(6.0, [1.6, 1.7, 1.65])}, "scene")
+    assert "full: step time x1.67 of base (its 3 rounds: x1.60 to x1.70, median x1.65)" in text

@@ -183,25 +183,41 @@ def test_the_loss_at_its_supervised_pixels_equals_the_loss_on_the_whole_image(ch
         decode_flows_at(features[valid], alpha[valid][:-1], torch.zeros(int(valid.sum()), 2))
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_pixel_rows_is_index_select_with_its_gradient(dtype):
-    """pixel_rows (the flow loss's gather of supervised pixels) against index_select: values and gradients equal, and
-    a gradient still held is not overwritten by the next backward (on float32 CPU the gradient is a pooled buffer)."""
-    from pidg.flow.model_flow import pixel_rows
+@pytest.mark.parametrize("channels", [6, 8])
+@pytest.mark.parametrize("min_alpha", [0.05, 0.0])
+def test_the_fused_flow_loss_kernel_matches_the_torch_functions(channels, min_alpha):
+    """supervised_flow_loss's numba pass (lpfm_cpu) against its torch form: loss, diagnostics and the gradients of
+    the channels and of alpha, with pixels under either alpha threshold, flows exactly on target (|x|' = 0 there),
+    unequal weights; and a graph-connected zero where no pixel is supervised."""
+    from pidg.flow.gaussian_flow import DECODE_MIN_ALPHA
+    from pidg.flow.model_flow import supervised_flow_loss
 
-    g = torch.Generator().manual_seed(5)
-    image = torch.randn(H * W, 3, generator=g, dtype=dtype, requires_grad=True)
-    index = torch.randperm(H * W, generator=g)[: H * W // 3]
-    weights = [torch.randn(index.numel(), 3, generator=g, dtype=dtype) for _ in range(2)]
-    rows = pixel_rows(image, index)
-    assert torch.equal(rows, image.index_select(0, index))
-    (first,) = torch.autograd.grad((rows * weights[0]).sum(), image)
-    kept = first.clone()
-    (second,) = torch.autograd.grad((pixel_rows(image, index) * weights[1]).sum(), image)
-    (reference,) = torch.autograd.grad((image.index_select(0, index) * weights[1]).sum(), image)
-    assert torch.equal(second, reference) and torch.equal(first, kept)  # the held gradient is intact
-    assert not torch.equal(first, second)
-    del first, second
-    (third,) = torch.autograd.grad((pixel_rows(image, index[:5]) * weights[0][:5]).sum(), image)
-    (reference,) = torch.autograd.grad((image.index_select(0, index[:5]) * weights[0][:5]).sum(), image)
-    assert torch.equal(third, reference)  # a reused buffer is zero outside the new rows
+    g = torch.Generator().manual_seed(11)
+    features = torch.randn(H, W, channels, generator=g) * 3
+    alpha = torch.rand(H, W, generator=g) * 0.9 + 0.02
+    alpha[0, :6] = torch.tensor([DECODE_MIN_ALPHA / 2, DECODE_MIN_ALPHA, 0.05, 0.0501, 1.0, 0.3])
+    valid = torch.rand(H, W, generator=g) > 0.3
+    valid[0, :6] = True
+    gt = torch.randn(H, W, 2, generator=g) * 4
+    features[1, 0] = 0.0  # pixel (0, 1): flow (0, 0) at any alpha
+    gt[1, 0] = 0.0
+    valid[1, 0] = True
+    target = FlowTarget(gt * valid.unsqueeze(-1), valid)
+    config = FlowConfig(lambda_gaussian=0.3, lambda_velocity=0.9, min_alpha=min_alpha)
+    results = []
+    for kernel in (False, True):
+        f, a = features.clone().requires_grad_(True), alpha.clone().requires_grad_(True)
+        result = supervised_flow_loss(f, a, target, config, kernel=kernel)
+        result.loss.backward()
+        results.append((result, f.grad, a.grad))
+    (ref, ref_f, ref_a), (fused, fused_f, fused_a) = results
+    assert fused.loss.dtype == torch.float32 and fused.loss.item() == pytest.approx(ref.loss.item(), rel=1e-6)
+    assert fused.scalars() == pytest.approx(ref.scalars(), rel=1e-5)
+    torch.testing.assert_close(fused_f, ref_f, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(fused_a, ref_a, rtol=1e-5, atol=1e-6)
+    assert ref_a.abs().sum() > 0 and ref_f[..., 4].abs().sum() > 0
+    none = FlowTarget(gt, torch.zeros(H, W, dtype=torch.bool))
+    f = features.clone().requires_grad_(True)
+    empty = supervised_flow_loss(f, alpha, none, config, kernel=True)
+    empty.loss.backward()
+    assert empty.loss.item() == 0.0 and empty.valid_pixels == 0 and f.grad.abs().sum() == 0

@@ -341,6 +341,16 @@ def test_invariant_of_reads_either_layout_with_the_same_values_and_gradients():
     assert DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3)).invariant_of(rows) is None
     moving = torch.tensor([8, 1, 11])  # only deformed rows: the same values, unmasked
     assert torch.equal(compact.invariant_of(moving), spread[moving])
+    ascending = torch.tensor([1, 4, 8, 11])  # distinct rows in order (the flow loss's): its pooled-gradient gather
+    values.grad = None
+    (compact.invariant_of(ascending) * weights[:4]).sum().backward()
+    expected = torch.zeros(deformed.numel(), d)
+    expected[[0, 2, 4, 5]] = weights[:4]
+    assert torch.equal(compact.invariant_of(ascending), spread[ascending]) and torch.equal(values.grad, expected)
+    spread_leaf = spread.detach().requires_grad_(True)
+    dense_leaf = DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3), invariant=spread_leaf)
+    (dense_leaf.invariant_of(ascending) * weights[:4]).sum().backward()
+    assert torch.equal(spread_leaf.grad, torch.zeros(n, d).index_copy(0, ascending, weights[:4]))
     none_deformed = DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3), invariant=values[:0],
                                       invariant_rows=deformed[:0])
     assert torch.equal(none_deformed.invariant_of(rows), torch.zeros(rows.numel(), d))

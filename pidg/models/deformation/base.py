@@ -28,6 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from pidg.kernel_math import select_distinct_rows
+
 GROUP_GRID = "grid"  # hash-grid tables: the trainer's high-learning-rate group
 GROUP_MLP = "mlp"  # network weights
 
@@ -54,7 +56,7 @@ class DeformedGaussians:
         if self.invariant is None:
             return None
         if self.invariant_rows is None:
-            return self.invariant.index_select(0, rows)
+            return _rows_of(self.invariant, rows)
         deformed_rows = self.invariant_rows
         if deformed_rows.numel() == 0:
             return self.invariant.new_zeros(rows.numel(), self.invariant.shape[1])
@@ -62,10 +64,19 @@ class DeformedGaussians:
         # position map over all N built per call
         at = torch.searchsorted(deformed_rows, rows).clamp_max(deformed_rows.numel() - 1)
         found = deformed_rows.index_select(0, at) == rows
-        gathered = self.invariant.index_select(0, at)
+        gathered = _rows_of(self.invariant, at)
         if bool(found.all()):  # the flow loss's rows are moving Gaussians: no mask to apply
             return gathered
         return gathered * found.unsqueeze(1).to(gathered.dtype)
+
+
+def _rows_of(source: Tensor, index: Tensor) -> Tensor:
+    """``source.index_select(0, index)``; for strictly increasing indices (the flow loss's Gaussians) by
+    ``select_distinct_rows``, whose gradient re-zeroes the rows it writes instead of a zero-filled [N, D] copy (the
+    [13k, 64] attention: 1.2 of the 1.4 ms its gather cost forward and backward)."""
+    if index.numel() < 2 or bool((index[1:] > index[:-1]).all()):
+        return select_distinct_rows(source, index)
+    return source.index_select(0, index)
 
 
 @dataclass(frozen=True)
