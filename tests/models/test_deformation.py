@@ -347,6 +347,12 @@ def test_invariant_of_reads_either_layout_with_the_same_values_and_gradients():
     expected = torch.zeros(deformed.numel(), d)
     expected[[0, 2, 4, 5]] = weights[:4]
     assert torch.equal(compact.invariant_of(ascending), spread[ascending]) and torch.equal(values.grad, expected)
+    mixed = torch.tensor([0, 1, 3, 4, 8, 11])  # increasing, static rows (0, 3) among them: zeros placed around
+    w6 = torch.randn(6, d)
+    values.grad = None
+    (compact.invariant_of(mixed) * w6).sum().backward()
+    assert torch.equal(compact.invariant_of(mixed), spread[mixed])
+    assert torch.equal(values.grad, torch.zeros(deformed.numel(), d).index_copy(0, torch.tensor([0, 2, 4, 5]), w6[[1, 3, 4, 5]]))
     spread_leaf = spread.detach().requires_grad_(True)
     dense_leaf = DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3), invariant=spread_leaf)
     (dense_leaf.invariant_of(ascending) * weights[:4]).sum().backward()

@@ -64,10 +64,12 @@ class DeformedGaussians:
         # position map over all N built per call
         at = torch.searchsorted(deformed_rows, rows).clamp_max(deformed_rows.numel() - 1)
         found = deformed_rows.index_select(0, at) == rows
-        gathered = _rows_of(self.invariant, at)
-        if bool(found.all()):  # the flow loss's rows are moving Gaussians: no mask to apply
-            return gathered
-        return gathered * found.unsqueeze(1).to(gathered.dtype)
+        if bool(found.all()):  # only moving Gaussians asked: their rows as they are
+            return _rows_of(self.invariant, at)
+        # static ones too (zero rows): gather the others' and place them, so that increasing rows stay a distinct gather
+        placed = found.nonzero().squeeze(1)
+        gathered = _rows_of(self.invariant, at.index_select(0, placed))
+        return gathered.new_zeros(rows.numel(), gathered.shape[1]).index_copy(0, placed, gathered)
 
 
 def _rows_of(source: Tensor, index: Tensor) -> Tensor:
