@@ -120,8 +120,8 @@ def _quotient_where_at_least(numerator, denominator, floor, out):  # pragma: no 
 
 def quotient_where_at_least(numerator: Tensor, denominator: Tensor, floor: float) -> Tensor:
     """numerator / denominator where denominator >= ``floor`` (> 0), else 0, for float32 CPU tensors of one shape,
-    without a gradient, in one pass (a render's opaque depth: the torch form's four full-image operations cost
-    0.65 ms a training step at 400x400, this 0.05)."""
+    without a gradient, in one pass (a render's opaque depth at 400x400, one thread: 0.1 ms against the torch form's
+    four full-image operations' 1.1)."""
     out = np.empty(numerator.numel(), dtype=np.float32)
     _quotient_where_at_least(float32_array(numerator).reshape(-1), float32_array(denominator).reshape(-1), f32(floor), out)
     return torch.from_numpy(out).reshape(numerator.shape)

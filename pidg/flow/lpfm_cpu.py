@@ -136,6 +136,8 @@ def flow_l1_at_pixels_cpu(
     """The loss of the module docstring at K pixels (``features`` [K, 6 or 8], ``alpha`` [K], ``centers`` [K, 2],
     ``gt`` [K, 2], ``valid`` [K] bool; float32 CPU), differentiable in ``features`` and ``alpha``, and its diagnostics:
     (loss, supervised pixels, mean EPE of flow_g, of flow_v (None with 6 channels), mean |gt|), EPEs in pixels."""
+    if features.dim() != 2 or features.shape[1] not in (6, 8):
+        raise ValueError(f"the fused flow loss takes [K, 6 or 8] channels (none for depth changes), got {list(features.shape)}")
     loss, diagnostics = _FlowL1AtPixels.apply(features, alpha, centers, gt, valid, min_decode, min_alpha, lambda_gaussian, lambda_velocity)
     count, epe_g, epe_v, size = diagnostics.tolist()
     n = max(count, 1.0)

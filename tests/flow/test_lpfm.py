@@ -221,3 +221,5 @@ def test_the_fused_flow_loss_kernel_matches_the_torch_functions(channels, min_al
     empty = supervised_flow_loss(f, alpha, none, config, kernel=True)
     empty.loss.backward()
     assert empty.loss.item() == 0.0 and empty.valid_pixels == 0 and f.grad.abs().sum() == 0
+    with pytest.raises(ValueError, match=r"takes \[K, 6 or 8\] channels \(none for depth changes\), got \[\d+, 10\]"):
+        supervised_flow_loss(torch.zeros(H, W, 10), alpha, target, config, kernel=True)
