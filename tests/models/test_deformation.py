@@ -26,6 +26,7 @@ from pidg.models.deformation import (
     quat_multiply,
     quat_rotate,
 )
+from pidg.models.deformation.base import _masked_rows
 from pidg.render.projection import quat_to_rotmat
 
 BOUNDS = Bounds(centre=(0.5, -1.0, 2.0), half_extent=(2.0, 2.0, 2.0))
@@ -353,6 +354,9 @@ def test_invariant_of_reads_either_layout_with_the_same_values_and_gradients():
     (compact.invariant_of(mixed) * w6).sum().backward()
     assert torch.equal(compact.invariant_of(mixed), spread[mixed])
     assert torch.equal(values.grad, torch.zeros(deformed.numel(), d).index_copy(0, torch.tensor([0, 2, 4, 5]), w6[[1, 3, 4, 5]]))
+    # the accelerator's sync-free form gives the same rows (what CUDA runs; here on the CPU)
+    at = torch.searchsorted(deformed, mixed).clamp_max(deformed.numel() - 1)
+    assert torch.equal(_masked_rows(values, at, deformed[at] == mixed), compact.invariant_of(mixed))
     spread_leaf = spread.detach().requires_grad_(True)
     dense_leaf = DeformedGaussians(means, torch.zeros(n, 4), torch.zeros(n, 3), invariant=spread_leaf)
     (dense_leaf.invariant_of(ascending) * weights[:4]).sum().backward()

@@ -64,14 +64,19 @@ class DeformedGaussians:
         # position map over all N built per call
         at = torch.searchsorted(deformed_rows, rows).clamp_max(deformed_rows.numel() - 1)
         found = deformed_rows.index_select(0, at) == rows
-        if self.invariant.device.type != "cpu":  # no host sync on an accelerator: static rows masked to zero
-            return self.invariant.index_select(0, at) * found.unsqueeze(1).to(self.invariant.dtype)
+        if self.invariant.device.type != "cpu":  # no host sync on an accelerator
+            return _masked_rows(self.invariant, at, found)
         if bool(found.all()):  # only moving Gaussians asked: their rows as they are
             return _rows_of(self.invariant, at)
         # static ones too (zero rows): gather the others' and place them, so that increasing rows stay a distinct gather
         placed = found.nonzero().squeeze(1)
         gathered = _rows_of(self.invariant, at.index_select(0, placed))
         return gathered.new_zeros(rows.numel(), gathered.shape[1]).index_copy(0, placed, gathered)
+
+
+def _masked_rows(source: Tensor, index: Tensor, keep: Tensor) -> Tensor:
+    """``source``'s rows ``index`` [K], zero where ``keep`` [K] is False, without a host sync (any device)."""
+    return source.index_select(0, index) * keep.unsqueeze(1).to(source.dtype)
 
 
 def _rows_of(source: Tensor, index: Tensor) -> Tensor:
