@@ -39,13 +39,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
 from torch import Tensor
 
-from pidg.kernel_math import ZEROED_BUFFERS, exp_nonpositive_unclamped, float32_array
+from pidg.kernel_math import ZEROED_BUFFERS, exp_nonpositive_unclamped, float32_array, round_robin_workers
 from pidg.render.projection import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -325,126 +324,128 @@ def _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight):  # pragma: no c
 @njit(parallel=True, cache=True, nogil=True)
 def _forward_tiles(
     means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, row_dims, width, height, tile_size, tiles_x,
-    out_img, out_extra, out_trans, out_end
+    out_img, out_extra, out_trans, out_end, workers
 ):  # pragma: no cover - compiled
     n_tiles = tile_offsets.shape[0] - 1
     n_image = out_img.shape[2]  # channels 0 .. n_image - 1 go to out_img, the rest to out_extra
-    for tile in prange(n_tiles):
-        start, end = tile_offsets[tile], tile_offsets[tile + 1]
-        x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
-        tx = tile % tiles_x
-        dim = tile_dims[tile]  # its rows' most (at least n_image): the width of its tables; out_extra holds 0 past a row's
-        n_k = end - start
-        table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
-        tfeat = np.empty((n_k, dim), dtype=np.float32)
-        filled = 0  # table columns filled so far: on demand, a fill block at a time
-        misses = np.empty(CULL_BLOCK, dtype=np.float32)
-        hits = np.empty(CULL_BLOCK, dtype=np.int64)
-        trans = np.empty(LANES, dtype=np.float32)
-        weight = np.empty(LANES, dtype=np.float32)
-        acc = np.empty((dim, LANES), dtype=np.float32)
-        # per-lane state as float32 like the rest, so that the lane loop is one vector type (stop: exact to 2^24)
-        stop = np.empty(LANES, dtype=np.float32)
-        live = np.empty(LANES, dtype=np.float32)
-        xs = np.empty(LANES, dtype=np.float32)
-        for lane in range(LANES):
-            xs[lane] = f32(lane) + f32(0.5)
-        # the feature loop's lane count, as a value the compiler cannot see is 16: with a constant count it unrolled
-        # the lanes and vectorised over channels instead (gathers and scatters; 2x slower)
-        feature_lanes = max(n_lanes, LANES)
-        for py in range(y_lo, y_hi):
-            pyc = f32(py) + f32(0.5)
-            row_dim = row_dims[py, tx]  # this row's channels
+    for worker in prange(workers):  # tiles dealt round-robin (see kernel_math.round_robin_workers)
+        for tile in range(worker, n_tiles, workers):
+            start, end = tile_offsets[tile], tile_offsets[tile + 1]
+            x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
+            tx = tile % tiles_x
+            dim = tile_dims[tile]  # its rows' most (at least n_image): the width of its tables; out_extra holds 0 past a row's
+            n_k = end - start
+            table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
+            tfeat = np.empty((n_k, dim), dtype=np.float32)
+            filled = 0  # table columns filled so far: on demand, a fill block at a time
+            misses = np.empty(CULL_BLOCK, dtype=np.float32)
+            hits = np.empty(CULL_BLOCK, dtype=np.int64)
+            trans = np.empty(LANES, dtype=np.float32)
+            weight = np.empty(LANES, dtype=np.float32)
+            acc = np.empty((dim, LANES), dtype=np.float32)
+            # per-lane state as float32 like the rest, so that the lane loop is one vector type (stop: exact to 2^24)
+            stop = np.empty(LANES, dtype=np.float32)
+            live = np.empty(LANES, dtype=np.float32)
+            xs = np.empty(LANES, dtype=np.float32)
             for lane in range(LANES):
-                trans[lane] = 1.0
-                stop[lane] = 0.0
-                live[lane] = f32(1.0) if lane < n_lanes else f32(0.0)
-            for d in range(row_dim):  # (a slice assignment here made the lane loops 2.5x slower)
+                xs[lane] = f32(lane) + f32(0.5)
+            # the feature loop's lane count, as a value the compiler cannot see is 16: with a constant count it unrolled
+            # the lanes and vectorised over channels instead (gathers and scatters; 2x slower)
+            feature_lanes = max(n_lanes, LANES)
+            for py in range(y_lo, y_hi):
+                pyc = f32(py) + f32(0.5)
+                row_dim = row_dims[py, tx]  # this row's channels
                 for lane in range(LANES):
-                    acc[d, lane] = 0.0
-            for k0 in range(0, n_k, CULL_BLOCK):
-                if k0 == filled:
-                    filled = min(filled + FILL_BLOCK, table.shape[1])
-                    _fill_tile(means2d, conics, opacities, feats, extra_feats, isect_ids, start, x_lo, k0, filled, table, tfeat)
-                n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
-                for i in range(n_hits):
-                    k = hits[i]
-                    _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight)
-                    for d in range(row_dim):
-                        f = tfeat[k, d]
-                        for lane in range(feature_lanes):
-                            acc[d, lane] += weight[lane] * f
-                # whether any pixel of the row is still open, once per block (it only saves work: closed lanes add 0)
-                n_live = f32(0.0)
-                for lane in range(LANES):
-                    n_live += live[lane]
-                if n_live == f32(0.0):
-                    break
-            for lane in range(n_lanes):
-                px = x_lo + lane
-                for d in range(n_image):
-                    out_img[py, px, d] = acc[d, lane]
-                for d in range(n_image, row_dim):
-                    out_extra[py, px, d - n_image] = acc[d, lane]
-                out_trans[py, px] = trans[lane]
-                out_end[py, px] = np.int32(stop[lane])
+                    trans[lane] = 1.0
+                    stop[lane] = 0.0
+                    live[lane] = f32(1.0) if lane < n_lanes else f32(0.0)
+                for d in range(row_dim):  # (a slice assignment here made the lane loops 2.5x slower)
+                    for lane in range(LANES):
+                        acc[d, lane] = 0.0
+                for k0 in range(0, n_k, CULL_BLOCK):
+                    if k0 == filled:
+                        filled = min(filled + FILL_BLOCK, table.shape[1])
+                        _fill_tile(means2d, conics, opacities, feats, extra_feats, isect_ids, start, x_lo, k0, filled, table, tfeat)
+                    n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
+                    for i in range(n_hits):
+                        k = hits[i]
+                        _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight)
+                        for d in range(row_dim):
+                            f = tfeat[k, d]
+                            for lane in range(feature_lanes):
+                                acc[d, lane] += weight[lane] * f
+                    # whether any pixel of the row is still open, once per block (it only saves work: closed lanes add 0)
+                    n_live = f32(0.0)
+                    for lane in range(LANES):
+                        n_live += live[lane]
+                    if n_live == f32(0.0):
+                        break
+                for lane in range(n_lanes):
+                    px = x_lo + lane
+                    for d in range(n_image):
+                        out_img[py, px, d] = acc[d, lane]
+                    for d in range(n_image, row_dim):
+                        out_extra[py, px, d - n_image] = acc[d, lane]
+                    out_trans[py, px] = trans[lane]
+                    out_end[py, px] = np.int32(stop[lane])
 
 
 @njit(parallel=True, cache=True, nogil=True)
 def _reaching_tiles(
     means2d, conics, opacities, tile_offsets, isect_ids, slot_of_isect, tiles, pixels, width, height, tile_size, tiles_x,
-    reached,
+    reached, workers,
 ):  # pragma: no cover - compiled
     """``reached[slot]`` = 1 for each (tile, Gaussian) intersection that adds to one of ``pixels`` [H, W] (uint8) in
     the listed ``tiles``: ``_forward_tiles``' cull and lane pass (``_add_to_lanes``), with the lanes of the other
     pixels closed from the start (a pixel's sums never depend on another's) and no channels composited."""
-    for i in prange(tiles.shape[0]):
-        tile = tiles[i]
-        start, end = tile_offsets[tile], tile_offsets[tile + 1]
-        n_k = end - start
-        if n_k == 0:
-            continue
-        x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
-        table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
-        no_channels = np.empty((n_k, 0), dtype=np.float32)  # the table fill's feature arrays, with none to copy
-        filled = 0
-        misses = np.empty(CULL_BLOCK, dtype=np.float32)
-        hits = np.empty(CULL_BLOCK, dtype=np.int64)
-        trans = np.empty(LANES, dtype=np.float32)
-        live = np.empty(LANES, dtype=np.float32)
-        weight = np.empty(LANES, dtype=np.float32)
-        stop = np.empty(LANES, dtype=np.float32)  # the lane pass's prefix ends, which nothing here reads
-        xs = np.empty(LANES, dtype=np.float32)
-        for lane in range(LANES):
-            xs[lane] = f32(lane) + f32(0.5)
-        for py in range(y_lo, y_hi):
-            pyc = f32(py) + f32(0.5)
-            n_live = f32(0.0)
-            for lane in range(LANES):
-                trans[lane] = 1.0
-                stop[lane] = 0.0
-                live[lane] = f32(1.0) if lane < n_lanes and pixels[py, x_lo + lane] != 0 else f32(0.0)
-                n_live += live[lane]
-            if n_live == f32(0.0):
+    for worker in prange(workers):  # tiles dealt round-robin (see kernel_math.round_robin_workers)
+        for i in range(worker, tiles.shape[0], workers):
+            tile = tiles[i]
+            start, end = tile_offsets[tile], tile_offsets[tile + 1]
+            n_k = end - start
+            if n_k == 0:
                 continue
-            for k0 in range(0, n_k, CULL_BLOCK):
-                if k0 == filled:
-                    filled = min(filled + FILL_BLOCK, table.shape[1])
-                    _fill_tile(means2d, conics, opacities, no_channels, no_channels, isect_ids, start, x_lo, k0, filled, table, no_channels)
-                n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
-                for j in range(n_hits):
-                    k = hits[j]
-                    _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight)
-                    total = f32(0.0)  # (summed apart from the lane pass, which a reduction would keep scalar)
-                    for lane in range(LANES):
-                        total += weight[lane]
-                    if total > f32(0.0):  # a weight that adds is at least 1/255 x 1e-4
-                        reached[slot_of_isect[start + k]] = 1
+            x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
+            table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
+            no_channels = np.empty((n_k, 0), dtype=np.float32)  # the table fill's feature arrays, with none to copy
+            filled = 0
+            misses = np.empty(CULL_BLOCK, dtype=np.float32)
+            hits = np.empty(CULL_BLOCK, dtype=np.int64)
+            trans = np.empty(LANES, dtype=np.float32)
+            live = np.empty(LANES, dtype=np.float32)
+            weight = np.empty(LANES, dtype=np.float32)
+            stop = np.empty(LANES, dtype=np.float32)  # the lane pass's prefix ends, which nothing here reads
+            xs = np.empty(LANES, dtype=np.float32)
+            for lane in range(LANES):
+                xs[lane] = f32(lane) + f32(0.5)
+            for py in range(y_lo, y_hi):
+                pyc = f32(py) + f32(0.5)
                 n_live = f32(0.0)
                 for lane in range(LANES):
+                    trans[lane] = 1.0
+                    stop[lane] = 0.0
+                    live[lane] = f32(1.0) if lane < n_lanes and pixels[py, x_lo + lane] != 0 else f32(0.0)
                     n_live += live[lane]
                 if n_live == f32(0.0):
-                    break
+                    continue
+                for k0 in range(0, n_k, CULL_BLOCK):
+                    if k0 == filled:
+                        filled = min(filled + FILL_BLOCK, table.shape[1])
+                        _fill_tile(means2d, conics, opacities, no_channels, no_channels, isect_ids, start, x_lo, k0, filled, table, no_channels)
+                    n_hits = _cull_block(table, k0, n_k, pyc, n_lanes, misses, hits)
+                    for j in range(n_hits):
+                        k = hits[j]
+                        _add_to_lanes(table, k, pyc, xs, trans, live, stop, weight)
+                        total = f32(0.0)  # (summed apart from the lane pass, which a reduction would keep scalar)
+                        for lane in range(LANES):
+                            total += weight[lane]
+                        if total > f32(0.0):  # a weight that adds is at least 1/255 x 1e-4
+                            reached[slot_of_isect[start + k]] = 1
+                    n_live = f32(0.0)
+                    for lane in range(LANES):
+                        n_live += live[lane]
+                    if n_live == f32(0.0):
+                        break
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -460,7 +461,7 @@ def _any_per_gaussian(reached, gauss_offsets, out):  # pragma: no cover - compil
 @njit(parallel=True, cache=True, nogil=True, fastmath=_REDUCE_FASTMATH)
 def _backward_tiles(
     means2d, conics, opacities, feats, extra_feats, tile_offsets, isect_ids, tile_dims, row_dims, width, height, tile_size,
-    tiles_x, out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, extra_rows, isect_extra,
+    tiles_x, out_trans, out_end, grad_img, grad_extra, grad_alpha, slot_of_isect, isect_grads, extra_rows, isect_extra, workers,
 ):  # pragma: no cover - compiled
     """Per (tile, Gaussian) gradients, back to front.
 
@@ -473,123 +474,124 @@ def _backward_tiles(
     n_slots = isect_grads.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
     n_image = grad_img.shape[2]  # channels from n_image on: their gradient is grad_extra's
-    for tile in prange(n_tiles):
-        start, end = tile_offsets[tile], tile_offsets[tile + 1]
-        if end == start:
-            continue
-        x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
-        tx = tile % tiles_x
-        dim = tile_dims[tile]  # the forward's channels: past a row's, constant 0 with no gradient
-        feature_lanes = max(n_lanes, LANES)  # 16, as a value the compiler cannot unroll (see _forward_tiles)
-        n_k = end - start
-        table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
-        tfeat = np.empty((n_k, dim), dtype=np.float32)
-        # only the Gaussians in front of some pixel's end: the forward's saturated pixels never reach the rest
-        k_tile_end = 0
-        for py in range(y_lo, y_hi):
-            for px in range(x_lo, x_hi):
-                k_tile_end = max(k_tile_end, out_end[py, px])
-        _fill_tile(means2d, conics, opacities, feats, extra_feats, isect_ids, start, x_lo, 0, _padded(k_tile_end), table, tfeat)
-        misses = np.empty(CULL_BLOCK, dtype=np.float32)
-        hits = np.empty(CULL_BLOCK, dtype=np.int64)
-        # gradient sums per (tile, Gaussian): each row adds its lane sums once (per-lane accumulators cost
-        # 16x the read-modify-write traffic, measured ~25% of the backward)
-        kgrads = np.zeros((k_tile_end, _N_PARAMS + dim), dtype=np.float32)
-        trans = np.empty(LANES, dtype=np.float32)
-        trans_final = np.empty(LANES, dtype=np.float32)
-        g_alpha_out = np.empty(LANES, dtype=np.float32)
-        stop = np.zeros(LANES, dtype=np.float32)  # float32 like the lanes' other state (exact to 2^24)
-        g_out = np.empty((dim, LANES), dtype=np.float32)
-        g_behind = np.empty(LANES, dtype=np.float32)  # G . (colour composited behind the current Gaussian)
-        g_feat = np.empty(LANES, dtype=np.float32)  # G . f_k
-        mask = np.empty(LANES, dtype=np.float32)
-        gauss = np.empty(LANES, dtype=np.float32)
-        inv = np.empty(LANES, dtype=np.float32)
-        weight = np.empty(LANES, dtype=np.float32)
-        g_a = np.empty(LANES, dtype=np.float32)
-        xs = np.empty(LANES, dtype=np.float32)
-        for lane in range(LANES):
-            xs[lane] = f32(lane) + f32(0.5)
-        for py in range(y_lo, y_hi):
-            pyc = f32(py) + f32(0.5)
-            row_dim = row_dims[py, tx]
-            k_end = 0
-            for lane in range(n_lanes):
-                px = x_lo + lane
-                stop[lane] = f32(out_end[py, px])
-                trans_final[lane] = out_trans[py, px]
-                g_alpha_out[lane] = grad_alpha[py, px]
-                for d in range(n_image):
-                    g_out[d, lane] = grad_img[py, px, d]
-                for d in range(n_image, row_dim):
-                    g_out[d, lane] = grad_extra[py, px, d - n_image]
-                k_end = max(k_end, out_end[py, px])
-            for lane in range(n_lanes, LANES):
-                stop[lane] = 0.0
-                trans_final[lane] = 1.0
-                g_alpha_out[lane] = 0.0
-                for d in range(dim):
-                    g_out[d, lane] = 0.0
+    for worker in prange(workers):  # tiles dealt round-robin (see kernel_math.round_robin_workers)
+        for tile in range(worker, n_tiles, workers):
+            start, end = tile_offsets[tile], tile_offsets[tile + 1]
+            if end == start:
+                continue
+            x_lo, y_lo, x_hi, y_hi, n_lanes = _tile_box(tile, tiles_x, tile_size, width, height)
+            tx = tile % tiles_x
+            dim = tile_dims[tile]  # the forward's channels: past a row's, constant 0 with no gradient
+            feature_lanes = max(n_lanes, LANES)  # 16, as a value the compiler cannot unroll (see _forward_tiles)
+            n_k = end - start
+            table = np.empty((_N_COLS, _padded(n_k)), dtype=np.float32)
+            tfeat = np.empty((n_k, dim), dtype=np.float32)
+            # only the Gaussians in front of some pixel's end: the forward's saturated pixels never reach the rest
+            k_tile_end = 0
+            for py in range(y_lo, y_hi):
+                for px in range(x_lo, x_hi):
+                    k_tile_end = max(k_tile_end, out_end[py, px])
+            _fill_tile(means2d, conics, opacities, feats, extra_feats, isect_ids, start, x_lo, 0, _padded(k_tile_end), table, tfeat)
+            misses = np.empty(CULL_BLOCK, dtype=np.float32)
+            hits = np.empty(CULL_BLOCK, dtype=np.int64)
+            # gradient sums per (tile, Gaussian): each row adds its lane sums once (per-lane accumulators cost
+            # 16x the read-modify-write traffic, measured ~25% of the backward)
+            kgrads = np.zeros((k_tile_end, _N_PARAMS + dim), dtype=np.float32)
+            trans = np.empty(LANES, dtype=np.float32)
+            trans_final = np.empty(LANES, dtype=np.float32)
+            g_alpha_out = np.empty(LANES, dtype=np.float32)
+            stop = np.zeros(LANES, dtype=np.float32)  # float32 like the lanes' other state (exact to 2^24)
+            g_out = np.empty((dim, LANES), dtype=np.float32)
+            g_behind = np.empty(LANES, dtype=np.float32)  # G . (colour composited behind the current Gaussian)
+            g_feat = np.empty(LANES, dtype=np.float32)  # G . f_k
+            mask = np.empty(LANES, dtype=np.float32)
+            gauss = np.empty(LANES, dtype=np.float32)
+            inv = np.empty(LANES, dtype=np.float32)
+            weight = np.empty(LANES, dtype=np.float32)
+            g_a = np.empty(LANES, dtype=np.float32)
+            xs = np.empty(LANES, dtype=np.float32)
             for lane in range(LANES):
-                trans[lane] = trans_final[lane]
-                g_behind[lane] = 0.0
-            for k0 in range((k_end - 1) // CULL_BLOCK * CULL_BLOCK, -1, -CULL_BLOCK):
-                n_hits = _cull_block(table, k0, k_end, pyc, n_lanes, misses, hits)
-                for i in range(n_hits - 1, -1, -1):
-                    k = hits[i]
-                    k_f = f32(k)
-                    mx, dy = table[_MX, k], table[_MY, k] - pyc
-                    a, b, c, o, threshold = table[_CA, k], table[_CB, k], table[_CC, k], table[_OP, k], table[_TH, k]
-                    c_term = f32(-0.5) * c * dy * dy
-                    for lane in range(LANES):  # same alpha, bit for bit, as the forward pass; stores unconditional
-                        dx = mx - xs[lane]
-                        power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
-                        gs = exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0)))
-                        gauss[lane] = gs
-                        alpha = min(f32(ALPHA_MAX), o * gs)
-                        hit = (k_f < stop[lane]) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
-                        m = f32(hit)
-                        mask[lane] = m
-                        inv_l = f32(1.0) / (f32(1.0) - alpha)
-                        inv[lane] = inv_l
-                        t = _blend(m, trans[lane] * inv_l, trans[lane])  # transmittance in front of k
-                        trans[lane] = t
-                        weight[lane] = alpha * t * m
-                        # d(out)/d(alpha_k) from 1 - T_final; the colour terms are added below
-                        g_a[lane] = g_alpha_out[lane] * trans_final[lane] * inv_l
-                    for lane in range(LANES):
-                        g_feat[lane] = 0.0
-                    for d in range(row_dim):
-                        f = tfeat[k, d]
-                        s_feat = f32(0.0)
-                        for lane in range(feature_lanes):
-                            g_feat[lane] += g_out[d, lane] * f
-                            s_feat += g_out[d, lane] * weight[lane]
-                        kgrads[k, _N_PARAMS + d] += s_feat
-                    # lane sums, vectorised under `reassoc`: q = gauss dL/d(alpha) (alpha's clamp passes none)
-                    s_q = s_qx = s_qxx = f32(0.0)
-                    for lane in range(LANES):
-                        g_alpha = g_a[lane] + trans[lane] * g_feat[lane] - g_behind[lane] * inv[lane]
-                        g_behind[lane] += g_feat[lane] * weight[lane]
-                        dx = mx - xs[lane]
-                        passes = mask[lane] if o * gauss[lane] <= f32(ALPHA_MAX) else f32(0.0)
-                        q = gauss[lane] * g_alpha * passes
-                        s_q += q
-                        s_qx += q * dx
-                        s_qxx += q * dx * dx
-                    # power = -a dx^2 / 2 - b dx dy - c dy^2 / 2 with dx = mean x - pixel x; d(alpha)/d(power) = o gauss
-                    kgrads[k, 0] -= o * (a * s_qx + b * dy * s_q)
-                    kgrads[k, 1] -= o * (c * dy * s_q + b * s_qx)
-                    kgrads[k, 2] -= f32(0.5) * o * s_qxx
-                    kgrads[k, 3] -= o * dy * s_qx
-                    kgrads[k, 4] -= f32(0.5) * o * dy * dy * s_q
-                    kgrads[k, 5] += s_q
-        for k in range(k_tile_end):  # the rest stay 0: no pixel reached them
-            slot = slot_of_isect[start + k]
-            for j in range(n_slots):
-                isect_grads[slot, j] = kgrads[k, j]
-            for j in range(n_slots, _N_PARAMS + dim):  # the extra channels': rows of their own tiles only
-                isect_extra[extra_rows[tile] + k, j - n_slots] = kgrads[k, j]
+                xs[lane] = f32(lane) + f32(0.5)
+            for py in range(y_lo, y_hi):
+                pyc = f32(py) + f32(0.5)
+                row_dim = row_dims[py, tx]
+                k_end = 0
+                for lane in range(n_lanes):
+                    px = x_lo + lane
+                    stop[lane] = f32(out_end[py, px])
+                    trans_final[lane] = out_trans[py, px]
+                    g_alpha_out[lane] = grad_alpha[py, px]
+                    for d in range(n_image):
+                        g_out[d, lane] = grad_img[py, px, d]
+                    for d in range(n_image, row_dim):
+                        g_out[d, lane] = grad_extra[py, px, d - n_image]
+                    k_end = max(k_end, out_end[py, px])
+                for lane in range(n_lanes, LANES):
+                    stop[lane] = 0.0
+                    trans_final[lane] = 1.0
+                    g_alpha_out[lane] = 0.0
+                    for d in range(dim):
+                        g_out[d, lane] = 0.0
+                for lane in range(LANES):
+                    trans[lane] = trans_final[lane]
+                    g_behind[lane] = 0.0
+                for k0 in range((k_end - 1) // CULL_BLOCK * CULL_BLOCK, -1, -CULL_BLOCK):
+                    n_hits = _cull_block(table, k0, k_end, pyc, n_lanes, misses, hits)
+                    for i in range(n_hits - 1, -1, -1):
+                        k = hits[i]
+                        k_f = f32(k)
+                        mx, dy = table[_MX, k], table[_MY, k] - pyc
+                        a, b, c, o, threshold = table[_CA, k], table[_CB, k], table[_CC, k], table[_OP, k], table[_TH, k]
+                        c_term = f32(-0.5) * c * dy * dy
+                        for lane in range(LANES):  # same alpha, bit for bit, as the forward pass; stores unconditional
+                            dx = mx - xs[lane]
+                            power = f32(-0.5) * a * dx * dx - b * dx * dy + c_term
+                            gs = exp_nonpositive_unclamped(min(max(power, f32(_POWER_FLOOR)), f32(0.0)))
+                            gauss[lane] = gs
+                            alpha = min(f32(ALPHA_MAX), o * gs)
+                            hit = (k_f < stop[lane]) & (power >= threshold) & (power <= f32(0.0)) & (alpha >= f32(ALPHA_MIN))
+                            m = f32(hit)
+                            mask[lane] = m
+                            inv_l = f32(1.0) / (f32(1.0) - alpha)
+                            inv[lane] = inv_l
+                            t = _blend(m, trans[lane] * inv_l, trans[lane])  # transmittance in front of k
+                            trans[lane] = t
+                            weight[lane] = alpha * t * m
+                            # d(out)/d(alpha_k) from 1 - T_final; the colour terms are added below
+                            g_a[lane] = g_alpha_out[lane] * trans_final[lane] * inv_l
+                        for lane in range(LANES):
+                            g_feat[lane] = 0.0
+                        for d in range(row_dim):
+                            f = tfeat[k, d]
+                            s_feat = f32(0.0)
+                            for lane in range(feature_lanes):
+                                g_feat[lane] += g_out[d, lane] * f
+                                s_feat += g_out[d, lane] * weight[lane]
+                            kgrads[k, _N_PARAMS + d] += s_feat
+                        # lane sums, vectorised under `reassoc`: q = gauss dL/d(alpha) (alpha's clamp passes none)
+                        s_q = s_qx = s_qxx = f32(0.0)
+                        for lane in range(LANES):
+                            g_alpha = g_a[lane] + trans[lane] * g_feat[lane] - g_behind[lane] * inv[lane]
+                            g_behind[lane] += g_feat[lane] * weight[lane]
+                            dx = mx - xs[lane]
+                            passes = mask[lane] if o * gauss[lane] <= f32(ALPHA_MAX) else f32(0.0)
+                            q = gauss[lane] * g_alpha * passes
+                            s_q += q
+                            s_qx += q * dx
+                            s_qxx += q * dx * dx
+                        # power = -a dx^2 / 2 - b dx dy - c dy^2 / 2 with dx = mean x - pixel x; d(alpha)/d(power) = o gauss
+                        kgrads[k, 0] -= o * (a * s_qx + b * dy * s_q)
+                        kgrads[k, 1] -= o * (c * dy * s_q + b * s_qx)
+                        kgrads[k, 2] -= f32(0.5) * o * s_qxx
+                        kgrads[k, 3] -= o * dy * s_qx
+                        kgrads[k, 4] -= f32(0.5) * o * dy * dy * s_q
+                        kgrads[k, 5] += s_q
+            for k in range(k_tile_end):  # the rest stay 0: no pixel reached them
+                slot = slot_of_isect[start + k]
+                for j in range(n_slots):
+                    isect_grads[slot, j] = kgrads[k, j]
+                for j in range(n_slots, _N_PARAMS + dim):  # the extra channels': rows of their own tiles only
+                    isect_extra[extra_rows[tile] + k, j - n_slots] = kgrads[k, j]
 
 
 @njit(cache=True, nogil=True)
@@ -656,8 +658,7 @@ class _CompositeCPU(torch.autograd.Function):
         tile_dims = _tile_maxima(row_dims, bins.tile_size, bins.tiles_y)
         args = (float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
                 bins.isect_ids, tile_dims, row_dims)
-        with numba.parallel_chunksize(1):  # tiles differ wildly in cost: hand them out one at a time
-            _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, extra, trans, end)
+        _forward_tiles(*args, width, height, bins.tile_size, bins.tiles_x, img, extra, trans, end, round_robin_workers())
         ctx.save_for_backward(means2d, conics, opacities, features)
         ctx.bins, ctx.trans, ctx.end, ctx.size = bins, trans, end, (width, height, image_channels)
         ctx.row_dims, ctx.tile_dims = row_dims, tile_dims
@@ -683,12 +684,11 @@ class _CompositeCPU(torch.autograd.Function):
         extra_rows = np.where(extra_tiles, np.cumsum(lengths) - lengths, -1)
         isect_extra = np.zeros((int(lengths.sum()), dim - image_channels), dtype=np.float32)
         feats, extra_feats = _split_columns(features, image_channels)
-        with numba.parallel_chunksize(1):
-            _backward_tiles(
-                float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
-                bins.isect_ids, tile_dims, row_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
-                float32_array(grad_extra), alpha_grad, bins.slot_of_isect, isect_grads, extra_rows, isect_extra,
-            )
+        _backward_tiles(
+            float32_array(means2d), float32_array(conics), float32_array(opacities), feats, extra_feats, bins.tile_offsets,
+            bins.isect_ids, tile_dims, row_dims, width, height, bins.tile_size, bins.tiles_x, ctx.trans, ctx.end, img_grad,
+            float32_array(grad_extra), alpha_grad, bins.slot_of_isect, isect_grads, extra_rows, isect_extra, round_robin_workers(),
+        )
         per_gauss = np.empty((n, _N_PARAMS + image_channels), dtype=np.float64)
         _reduce_per_gaussian(isect_grads, bins.gauss_offsets, per_gauss)
         per_gauss_extra = np.zeros((n, dim - image_channels), dtype=np.float64)
@@ -823,12 +823,11 @@ def gaussians_reaching_cpu(
     mask = pixels.detach().to(device="cpu", dtype=torch.bool).contiguous()
     tiles = tiles_touched(mask, tile_size).reshape(-1)
     reached = np.zeros(bins.num_intersections, dtype=np.uint8)
-    with numba.parallel_chunksize(1):
-        _reaching_tiles(
-            float32_array(means2d), float32_array(conics), float32_array(opacities), bins.tile_offsets, bins.isect_ids,
-            bins.slot_of_isect, tiles.nonzero().squeeze(1).numpy(), mask.numpy().view(np.uint8), width, height,
-            tile_size, bins.tiles_x, reached,
-        )
+    _reaching_tiles(
+        float32_array(means2d), float32_array(conics), float32_array(opacities), bins.tile_offsets, bins.isect_ids,
+        bins.slot_of_isect, tiles.nonzero().squeeze(1).numpy(), mask.numpy().view(np.uint8), width, height,
+        tile_size, bins.tiles_x, reached, round_robin_workers(),
+    )
     out = np.empty(means2d.shape[0], dtype=np.bool_)
     _any_per_gaussian(reached, bins.gauss_offsets, out)
     return torch.from_numpy(out)
