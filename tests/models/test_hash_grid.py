@@ -250,3 +250,36 @@ def test_gradient_buffers_are_reused_only_when_released():
     grid.table.grad = None  # released: the next pass may reuse that memory, zeroed
     backward()
     assert grid.table.grad.data_ptr() == first and torch.equal(grid.table.grad, single)
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_the_kernels_give_the_same_bits_for_any_number_of_workers(monkeypatch, workers):
+    """The forward's (level, chunk) tasks and the table gradient's levels are dealt round-robin to the workers
+    (``kernel_math.round_robin_workers``); each task is computed whole by one worker, so features and gradients do not
+    depend on how many there are (here 1 or 3 against the machine's count), with and without the smoothness term."""
+    import pidg.models.deformation.hash_grid as hash_grid
+
+    grid = random_grid(GRID4D_TEMPORAL)
+    pts = hard_points(GRID4D_TEMPORAL, 9000)  # two whole chunks of points per level and a partial one
+    gen = torch.Generator().manual_seed(8)
+    rows = torch.randperm(pts.shape[0], generator=gen)[:700]
+    jittered = pts[rows] + (torch.rand(rows.shape[0], 3, generator=gen) * 2 - 1) * 0.01
+    upstream = torch.randn(pts.shape[0], grid.out_dim, generator=gen)
+
+    def run():
+        results = []
+        for smooth in (False, True):
+            grid.table.grad = None
+            if smooth:
+                features, term = hash_encode_with_smoothness(pts, jittered, rows, grid.table, grid.layout, "cpu")
+                ((features * upstream).sum() + term).backward()
+            else:
+                features = hash_encode(pts, grid.table, grid.layout, "cpu")
+                (features * upstream).sum().backward()
+            results += [features.detach(), grid.table.grad.clone()]
+        return results
+
+    default = run()
+    monkeypatch.setattr(hash_grid, "round_robin_workers", lambda: workers)
+    for a, b in zip(default, run(), strict=True):
+        assert torch.equal(a, b)

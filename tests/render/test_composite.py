@@ -492,3 +492,30 @@ def test_tile_rows_touched_are_the_tile_rows_holding_a_pixel(tile_size):
     expected = torch.tensor([[bool(pixels[y, x:x + tile_size].any()) for x in range(0, 50, tile_size)] for y in range(37)])
     assert 0 < expected.sum() < expected.numel()
     assert torch.equal(tile_rows_touched(pixels, tile_size), expected)
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_the_kernels_give_the_same_bits_for_any_number_of_workers(monkeypatch, workers):
+    """Tiles are dealt round-robin to the workers (``kernel_math.round_robin_workers``); each tile is computed whole by
+    one worker, so the render, its gradients and the set of Gaussians reaching some pixels do not depend on how many
+    there are (here 1 or 3 against the machine's count)."""
+    import pidg.render.rasterize_cpu as rasterize_cpu
+    from pidg.render.api import gaussians_reaching, prepare_render
+
+    camera = orbit_camera(70, 38, azimuth_deg=30.0)
+    scene = hard_scene(camera, 400, torch.float32)
+    pixels = torch.zeros(38, 70, dtype=torch.bool)
+    pixels[5:30:4, 3:60:5] = True
+
+    def run():
+        params = [t.detach().clone().requires_grad_(True) for t in scene.params()]
+        out = render(GaussianScene(*params), camera, "cpu")
+        scalar_loss(out).backward()
+        screen = prepare_render(scene.means, scene.quats, scene.opacities, scene.colors, camera, scales=scene.scales, backend="cpu")
+        reaching = gaussians_reaching(screen, pixels)
+        return [out.rgb.detach(), out.alpha.detach(), out.features.detach(), reaching, *(p.grad for p in params)]
+
+    default = run()
+    monkeypatch.setattr(rasterize_cpu, "round_robin_workers", lambda: workers)
+    for a, b in zip(default, run(), strict=True):
+        assert torch.equal(a, b)
