@@ -28,7 +28,6 @@ Tests compare both passes with autograd through the reference in float64.
 """
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
@@ -175,11 +174,10 @@ class _WarpCPU(torch.autograd.Function):
         means, quats, heads, centre, half_extent = ctx.saved_tensors
         n = means.shape[0]
         grads = [np.empty((n, k), dtype=np.float32) for k in (3, 4, 14)]
-        with numba.parallel_chunksize(1024):
-            _warp_backward(
-                *(float32_array(t) for t in (means, quats, heads, centre, half_extent)), ctx.rotate,
-                *(float32_array(g) for g in (g_means_out, g_quats_out, g_ls_out)), *grads,
-            )
+        _warp_backward(
+            *(float32_array(t) for t in (means, quats, heads, centre, half_extent)), ctx.rotate,
+            *(float32_array(g) for g in (g_means_out, g_quats_out, g_ls_out)), *grads,
+        )
         g_means, g_quats, g_heads = (torch.from_numpy(a) for a in grads)
         return g_means, g_quats, g_ls_out.to(torch.float32), g_heads, None, None, None
 
