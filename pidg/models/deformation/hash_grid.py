@@ -23,8 +23,8 @@ Two implementations behind ``hash_encode``:
     coordinates, any order). Runs on any device; it is what CUDA tensors use.
   * ``_HashEncodeCPU``: numba kernels, float32, first derivatives only (use the reference for higher ones).
     Forward: one parallel task per level and chunk of points (a level's rows stay in cache), into a level-major
-    buffer that one more parallel pass turns point-major. Backward w.r.t. the
-    table: one parallel task per *level*.
+    buffer that one more parallel pass turns point-major. Backward w.r.t. the table: one parallel task per *level*.
+    Tasks are dealt round-robin to the threads (``round_robin_workers``).
     Levels own disjoint table rows, so each thread adds into its own levels' rows: no atomics, no per-thread
     copies of the (up to 49 MB) table gradient to reduce, and a deterministic result. Backward w.r.t. the
     coordinates (only when they require grad): a point-parallel pass that re-reads the 8 corner values per
