@@ -7,12 +7,12 @@ Why numba: it installs from PyPI as a wheel on every major platform, needs no co
 Pipeline, with no Python loop over Gaussians:
   1. ``bin_gaussians``: each visible Gaussian's bounding box -> the 16x16 tiles it touches; a counting sort by
      tile of the depth-sorted Gaussians yields per-tile lists in front-to-back order (O(#intersections)).
-  2. ``_forward_tiles``: one task per tile, the tiles dealt round-robin to the threads (``round_robin_workers``).
-     A tile row of 16 pixels is processed as 16 SIMD lanes: the tile list is culled against the row 16 Gaussians
-     at a time in one vector pass (the alpha >= 1/255 ellipse must reach the row), and for each Gaussian that
-     does, alpha is computed for all lanes with a branch-free polynomial exp, so the compiler vectorises the lane
-     loop and no per-pixel branch is mispredicted. Each pixel stops once its transmittance would fall below 1e-4; the row stops when all its
-     pixels have (checked once per cull block). Per pixel it records the final transmittance and the end of its
+  2. ``_forward_tiles``: one task per tile, the tiles dealt round-robin to the threads (``round_robin_workers``). A
+     tile row of 16 pixels is processed as 16 SIMD lanes: the tile list is culled against the row 16 Gaussians at a
+     time in one vector pass (the alpha >= 1/255 ellipse must reach the row), and for each Gaussian that does, alpha is
+     computed for all lanes with a branch-free polynomial exp, so the compiler vectorises the lane loop and no
+     per-pixel branch is mispredicted. Each pixel stops once its transmittance would fall below 1e-4; the row stops when
+     all its pixels have (checked once per cull block). Per pixel it records the final transmittance and the end of its
      contributing prefix. A tile's table of Gaussians is filled as rows first reach them: in crowded tiles pixels
      saturate long before the list's end.
   3. ``_backward_tiles``: the same row/lane structure, back to front from that end, recovering each
