@@ -311,32 +311,15 @@ def _encode_level(u, flat, scales, sizes, offsets, hashed, mask, lvl, first, sto
                 out[lvl * n_feat + f, start + k] = acc[f, k]
 
 
-_TRANSPOSE_BLOCK = 64  # points per block of ``_points_major_kernel``: 64 rows of 32 features are 8 KB of output
+_TRANSPOSE_BLOCK = 64  # points per task of ``_transpose_kernel``: 64 points of 32 features are 8 KB
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _points_major_kernel(src, dst):  # pragma: no cover - compiled
-    """dst [n, C] = src[:, :n].T, in blocks of points: each task writes whole rows of its own and reads runs of
-    _TRANSPOSE_BLOCK values from each of src's rows."""
-    n, n_cols = dst.shape
-    for block in prange((n + _TRANSPOSE_BLOCK - 1) // _TRANSPOSE_BLOCK):
-        first = block * _TRANSPOSE_BLOCK
-        stop = min(n, first + _TRANSPOSE_BLOCK)
-        for c in range(n_cols):
-            for i in range(first, stop):
-                dst[i, c] = src[c, i]
-
-
-def _points_major(level_major: np.ndarray, n: int) -> np.ndarray:
-    """The first ``n`` points' features [n, C] of a level-major [C, N] buffer, as a C-contiguous array."""
-    out = np.empty((n, level_major.shape[0]), dtype=level_major.dtype)
-    _points_major_kernel(level_major, out)
-    return out
-
-
-@njit(parallel=True, cache=True, nogil=True)
-def _level_major_kernel(src, dst):  # pragma: no cover - compiled
-    """dst[:, :n] = src.T for src [n, C] (any strides), in blocks of points: whole rows read, runs written."""
+def _transpose_kernel(src, dst):  # pragma: no cover - compiled
+    """dst[:, :n] = src.T for src [n, C] (any strides), a block of points per task, a point's C values together.
+    Both turns of the hash features go through it: point-major to level-major directly, level-major to point-major
+    on transposed views (``_points_major``; 0.10 against 0.17 ms at 16k points x 32 features for a loop that wrote
+    one feature column at a time)."""
     n, n_cols = src.shape
     for block in prange((n + _TRANSPOSE_BLOCK - 1) // _TRANSPOSE_BLOCK):
         for i in range(block * _TRANSPOSE_BLOCK, min(n, (block + 1) * _TRANSPOSE_BLOCK)):
@@ -344,11 +327,18 @@ def _level_major_kernel(src, dst):  # pragma: no cover - compiled
                 dst[c, i] = src[i, c]
 
 
+def _points_major(level_major: np.ndarray, n: int) -> np.ndarray:
+    """The first ``n`` points' features [n, C] of a level-major [C, N] buffer, as a C-contiguous array."""
+    out = np.empty((n, level_major.shape[0]), dtype=level_major.dtype)
+    _transpose_kernel(level_major[:, :n].T, out.T)
+    return out
+
+
 def _level_major(grad: np.ndarray, n_total: int | None = None) -> np.ndarray:
     """A point-major gradient [n, C] as a level-major [C, n_total] array (columns past n left unset), the layout
     the table kernel reads in runs (1.8 against 2.7 ms for a temporal grid's table gradient at 16k points)."""
     out = np.empty((grad.shape[1], grad.shape[0] if n_total is None else n_total), dtype=np.float32)
-    _level_major_kernel(grad, out)
+    _transpose_kernel(grad, out)
     return out
 
 
