@@ -97,8 +97,10 @@ class OptimConfig:
     """"stop": stop (with a checkpoint) when the budget is spent, wherever the schedule is (its learning-rate decay may
     not have finished). "fit": once the model's size has settled (after densification and the static/dynamic split,
     or at a tenth of the run without them), measure the step time and shorten the run, never lengthen it, so that
-    it ends inside the budget; the learning rates then decay over the shortened run, and the budget still stops a
-    run that slows down later. The run's length then depends on the machine's speed (it is logged, saved in the
+    it ends inside the budget; the learning rates then decay over the shortened run. Two thirds of the way from the
+    fit to the run's end the fit is made once more, with the step time measured since, so that a machine whose speed
+    drifted still ends the run inside the budget with its schedules complete (the budget itself stops a run that
+    slows further). The run's length then depends on the machine's speed (it is logged, saved in the
     checkpoint's config and in train_summary.json as ``schedule_fit``; give --optim.iterations with
     --optim.time_budget_minutes none to repeat a run exactly). "fill": as "fit", and a machine faster than the
     planned run needs lengthens it as well, up to time_budget_max_stretch times its planned steps, so that the

@@ -58,6 +58,10 @@ STEP_PHASES = ("deformation", "physics", "flow_target", "flow", "render", "loss"
 FIT_WINDOW_STEPS = 200
 #: ... and plans to use this share of the budget, so that the machine's noise does not end the run at the hard stop
 FIT_BUDGET_SHARE = 0.98
+#: The fit is made once more this share of the way from the fit to the run's end, with the step time measured since: a
+#: machine whose speed drifted (a shared CPU's load, a hotter chip) would otherwise end the run at the budget's hard
+#: stop before its learning rates decayed, or leave minutes of the budget unused
+REFIT_AT = 2 / 3
 
 
 @dataclass
@@ -125,7 +129,7 @@ class Trainer:
         self.step = 0
         self.train_seconds = 0.0
         self.clock = time.perf_counter  # what train_seconds is measured with (a test can drive it)
-        self.schedule_fit: dict | None = None  # how the run was fitted to its time budget (policy "fit"), once done
+        self.schedule_fit: dict | None = None  # how the run was fitted to its time budget ("fit", "fill"), and refitted
         self._fit_mark: tuple[int, float] | None = None  # (step, train_seconds) where the fit's step timing began
         self.rollbacks = 0  # times a non-finite step sent the run back to its last good checkpoint
         self.lr_scale = 1.0  # every learning rate times this (rollback_lr_factor per rollback)
@@ -316,7 +320,8 @@ class Trainer:
                         bar.update(self.step)
                         continue
                     self.train_seconds += self.clock() - t0
-                    if fitting and self.schedule_fit is None and self._fit_to_budget(budget, out_dir):
+                    if fitting and (self._fit_to_budget(budget, out_dir) if self.schedule_fit is None
+                                    else self._refit_to_budget(budget, out_dir)):
                         total = self.config.optim.iterations
                         bar.total = total
                     # (decided before the step: a budget fit shortens the run to a later step than this one, so the
@@ -388,26 +393,54 @@ class Trainer:
         if self.step - mark_step < max(1, min(FIT_WINDOW_STEPS, (o.iterations - start) // 10)):
             return False
         per_step = (self.train_seconds - mark_seconds) / (self.step - mark_step)
-        affordable = int((FIT_BUDGET_SHARE * budget_seconds - self.train_seconds) / max(per_step, 1e-9))
-        longest = o.iterations if o.time_budget_policy == "fit" else int(o.iterations * o.time_budget_max_stretch)
-        iterations = min(longest, self.step + max(affordable, 1))
+        iterations = self._affordable_iterations(per_step, budget_seconds, o.iterations)
         self.schedule_fit = {
             "step": self.step, "seconds_per_step": per_step, "budget_minutes": budget_seconds / 60.0,
             "iterations_planned": o.iterations, "iterations": iterations,
+            "train_seconds": self.train_seconds, "refit": None,
         }
-        if iterations != o.iterations:
-            self.config = replace(self.config, optim=replace(o, iterations=iterations))
-            reschedule(self.optimizers, self.config, self.extent)
-            save_config(self.config, out_dir / CONFIG_FILE)
-            logger.info(
-                "step %d: %.3f s a step over steps %d-%d, so %d steps (%d planned) fit the %g-minute budget; "
-                "the run and its learning-rate schedules now end at step %d",
-                self.step, per_step, mark_step, self.step, iterations, o.iterations, budget_seconds / 60.0, iterations,
-            )
-        else:
-            logger.info("step %d: %.3f s a step; the planned %d steps fit the %g-minute budget", self.step, per_step,
-                        o.iterations, budget_seconds / 60.0)
+        self._set_iterations(iterations, out_dir, f"{per_step:.3f} s a step over steps {mark_step}-{self.step}",
+                             budget_seconds)
         return True
+
+    def _refit_to_budget(self, budget_seconds: float, out_dir: Path) -> bool:
+        """``REFIT_AT`` of the way from the fit to the run's end, the fit once more with the step time measured since
+        (a checkpoint written before refits has no record of that time and is not refitted). True when the length was
+        decided again at this step."""
+        fit = self.schedule_fit
+        if "train_seconds" not in fit or fit["refit"] is not None:
+            return False
+        if self.step < fit["step"] + REFIT_AT * (fit["iterations"] - fit["step"]):
+            return False
+        per_step = (self.train_seconds - fit["train_seconds"]) / max(self.step - fit["step"], 1)
+        iterations = self._affordable_iterations(per_step, budget_seconds, fit["iterations_planned"])
+        fit["refit"] = {"step": self.step, "seconds_per_step": per_step, "iterations": iterations}
+        self._set_iterations(iterations, out_dir, f"{per_step:.3f} s a step over steps {fit['step']}-{self.step}",
+                             budget_seconds)
+        return True
+
+    def _affordable_iterations(self, per_step: float, budget_seconds: float, planned: int) -> int:
+        """The run's length that ends inside ``FIT_BUDGET_SHARE`` of the budget at ``per_step`` seconds a step: never
+        more than the planned steps under policy "fit", ``time_budget_max_stretch`` times them under "fill"."""
+        o = self.config.optim
+        affordable = int((FIT_BUDGET_SHARE * budget_seconds - self.train_seconds) / max(per_step, 1e-9))
+        longest = planned if o.time_budget_policy == "fit" else int(planned * o.time_budget_max_stretch)
+        return min(longest, self.step + max(affordable, 1))
+
+    def _set_iterations(self, iterations: int, out_dir: Path, measured: str, budget_seconds: float) -> None:
+        """The run's length from now on, with every learning-rate schedule over it (a change mid-decay moves each
+        rate by the factor its schedule gives the step's new share of the run), logged and saved in config.json."""
+        o = self.config.optim
+        if iterations == o.iterations:
+            logger.info("step %d: %s; the run's %d steps fit the %g-minute budget", self.step, measured,
+                        o.iterations, budget_seconds / 60.0)
+            return
+        self.config = replace(self.config, optim=replace(o, iterations=iterations))
+        reschedule(self.optimizers, self.config, self.extent)
+        save_config(self.config, out_dir / CONFIG_FILE)
+        logger.info("step %d: %s, so %d steps (not %d) fit the %g-minute budget; the run and its learning-rate "
+                    "schedules now end at step %d", self.step, measured, iterations, o.iterations,
+                    budget_seconds / 60.0, iterations)
 
     def _roll_back(self, checkpoint: Path, err: NonFiniteError) -> None:
         """Back to the last good checkpoint with every learning rate times ``rollback_lr_factor``; a clear stop

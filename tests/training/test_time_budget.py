@@ -25,18 +25,25 @@ def config(small_config):
 
 def steady_clock():
     """A clock that advances SECONDS_PER_STEP per reading: the loop reads it before and after each step."""
+    return drifting_clock(lambda: SECONDS_PER_STEP)
+
+
+def drifting_clock(seconds_per_step):
+    """A clock that advances ``seconds_per_step()`` per reading (the loop reads it before and after each step, so a
+    step takes the value read after it)."""
     now = [0.0]
 
     def clock() -> float:
-        now[0] += SECONDS_PER_STEP
+        now[0] += seconds_per_step()
         return now[0]
 
     return clock
 
 
-def trained(cfg, scene) -> tuple[Trainer, dict]:
+def trained(cfg, scene, seconds_per_step=None) -> tuple[Trainer, dict]:
+    """The run of ``cfg``, timed by a steady clock or one whose step time is ``seconds_per_step(trainer.step)``."""
     trainer = Trainer(cfg, scene)
-    trainer.clock = steady_clock()
+    trainer.clock = steady_clock() if seconds_per_step is None else drifting_clock(lambda: seconds_per_step(trainer.step))
     return trainer, trainer.train()
 
 
@@ -54,7 +61,9 @@ def test_a_fitted_run_ends_inside_its_budget_with_its_schedules_over_the_new_len
     expected = 12 + int((0.98 * budget_s - 12 * SECONDS_PER_STEP) / SECONDS_PER_STEP)
     assert summary["schedule_fit"] == {
         "step": 12, "seconds_per_step": pytest.approx(SECONDS_PER_STEP), "budget_minutes": pytest.approx(budget_s / 60),
-        "iterations_planned": 40, "iterations": expected,
+        "iterations_planned": 40, "iterations": expected, "train_seconds": pytest.approx(12 * SECONDS_PER_STEP),
+        # two thirds of the way from step 12 to 29 the fit is made again; a steady machine keeps the length
+        "refit": {"step": 24, "seconds_per_step": pytest.approx(SECONDS_PER_STEP), "iterations": expected},
     }
     assert summary["iterations"] == expected == 29 and summary["stopped_by"] is None
     assert summary["train_minutes"] * 60 <= budget_s
@@ -104,6 +113,70 @@ def test_a_filled_run_on_a_slow_machine_is_shortened_as_a_fitted_one(small_scene
     _, fitted = trained(config(tmp_path / "fit", 15.0 / 60, "fit"), small_scene)
     _, filled = trained(config(tmp_path / "fill", 15.0 / 60, "fill"), small_scene)
     assert filled["schedule_fit"] == fitted["schedule_fit"] and filled["iterations"] == fitted["iterations"] == 29
+
+
+def test_a_machine_that_slows_after_the_fit_is_refitted_to_end_inside_the_budget(small_scene, config, tmp_path):
+    budget_s = 15.0
+    slower = 1.25 * SECONDS_PER_STEP  # from step 13 on; the fit (steps 9-12) planned 29 steps at the steady pace
+    pace = lambda step: SECONDS_PER_STEP if step <= 12 else slower  # noqa: E731
+    trainer, summary = trained(config(tmp_path, budget_s / 60, "fill"), small_scene, pace)
+    fit = summary["schedule_fit"]
+    assert fit["iterations"] == 29
+    # two thirds of the way to 29 (step 24), 12 slower steps are measured: what is left of 0.98 of the budget buys one
+    spent = 12 * SECONDS_PER_STEP + 12 * slower
+    expected = 24 + int((0.98 * budget_s - spent) / slower)
+    assert fit["refit"] == {"step": 24, "seconds_per_step": pytest.approx(slower), "iterations": expected}
+    assert expected == 25 and summary["iterations"] == 25
+    # the run ends by its own schedule inside the budget, not at the budget's hard stop (step 27 without the refit)
+    assert summary["stopped_by"] is None and summary["train_minutes"] * 60 <= budget_s
+    assert trainer.optimizers["deformation"].schedule(expected, 1.0) == pytest.approx(0.1)
+    assert json.loads((tmp_path / "config.json").read_text())["optim"]["iterations"] == expected
+
+
+def test_a_machine_that_speeds_up_after_the_fit_fills_its_budget_under_fill_only(small_scene, config, tmp_path):
+    budget_s = 30.0
+    faster = 0.75 * SECONDS_PER_STEP
+    pace = lambda step: SECONDS_PER_STEP if step <= 12 else faster  # noqa: E731
+    fill = config(tmp_path / "fill", budget_s / 60, "fill")
+    fill = dataclasses.replace(fill, optim=dataclasses.replace(fill.optim, time_budget_max_stretch=2.0))
+    _, summary = trained(fill, small_scene, pace)
+    fit = summary["schedule_fit"]
+    assert fit["iterations"] == 58  # the fit's pace
+    refit_step = 43  # two thirds of the way from 12 to 58
+    spent = 12 * SECONDS_PER_STEP + (refit_step - 12) * faster
+    expected = refit_step + int((0.98 * budget_s - spent) / faster)
+    assert fit["refit"] == {"step": refit_step, "seconds_per_step": pytest.approx(faster), "iterations": expected}
+    assert expected == 74 <= 2 * 40 and summary["iterations"] == expected
+    assert summary["stopped_by"] is None and summary["train_minutes"] * 60 <= budget_s
+    # "fit" never lengthens the planned run, refit or not
+    _, summary = trained(config(tmp_path / "fit", budget_s / 60, "fit"), small_scene, pace)
+    assert summary["schedule_fit"]["refit"]["iterations"] == summary["iterations"] == 40
+
+
+def test_a_run_resumed_between_fit_and_refit_refits_as_the_straight_run(small_scene, config, tmp_path):
+    budget_s, slower = 15.0, 1.25 * SECONDS_PER_STEP
+    straight, summary = trained(config(tmp_path / "straight", budget_s / 60, "fill"), small_scene,
+                                lambda step: SECONDS_PER_STEP if step <= 12 else slower)
+    trainer = Trainer(config(tmp_path / "cut", budget_s / 60, "fill"), small_scene)
+    readings_at_20, at_20 = [0], tmp_path / "at20.pt"
+
+    def pace() -> float:  # the reading that starts step 21 also saves the state after step 20: fitted, not refitted
+        if trainer.step == 20:
+            readings_at_20[0] += 1
+            if readings_at_20[0] == 2:
+                torch.save(trainer.state_dict(), at_20)
+        return SECONDS_PER_STEP if trainer.step <= 12 else slower
+
+    trainer.clock = drifting_clock(pace)
+    trainer.train()
+    fit = load_checkpoint(at_20)["schedule_fit"]
+    assert fit["iterations"] == 29 and fit["refit"] is None
+    resumed = Trainer.from_checkpoint(at_20, small_scene)
+    resumed.clock = drifting_clock(lambda: slower)
+    again = resumed.train()
+    assert again["schedule_fit"] == summary["schedule_fit"] and again["iterations"] == summary["iterations"] == 25
+    for name, value in straight.model.gaussians.params.items():
+        assert torch.equal(value, resumed.model.gaussians.params[name]), name
 
 
 def test_the_cpu_preset_fits_d_nerf_runs_to_thirty_minutes():
