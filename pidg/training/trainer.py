@@ -316,6 +316,8 @@ class Trainer:
                         parts = self.train_step(log=logs)
                     except NonFiniteError as err:
                         self._roll_back(checkpoint, err)
+                        if iterations is None:  # the length the run had at that checkpoint (before a budget fit?)
+                            total = self.config.optim.iterations
                         bar.reset(total=total)
                         bar.update(self.step)
                         continue
@@ -435,16 +437,21 @@ class Trainer:
             logger.info("step %d: %s; the run's %d steps fit the %g-minute budget", self.step, measured,
                         o.iterations, budget_seconds / 60.0)
             return
-        self.config = replace(self.config, optim=replace(o, iterations=iterations))
-        reschedule(self.optimizers, self.config, self.extent)
-        save_config(self.config, out_dir / CONFIG_FILE)
+        self._set_length(iterations, out_dir)
         logger.info("step %d: %s, so %d steps (not %d) fit the %g-minute budget; the run and its learning-rate "
                     "schedules now end at step %d", self.step, measured, iterations, o.iterations,
                     budget_seconds / 60.0, iterations)
 
+    def _set_length(self, iterations: int, out_dir: Path) -> None:
+        """The run's length, in the config (and config.json) and in every learning-rate schedule."""
+        self.config = replace(self.config, optim=replace(self.config.optim, iterations=iterations))
+        reschedule(self.optimizers, self.config, self.extent)
+        save_config(self.config, out_dir / CONFIG_FILE)
+
     def _roll_back(self, checkpoint: Path, err: NonFiniteError) -> None:
-        """Back to the last good checkpoint with every learning rate times ``rollback_lr_factor``; a clear stop
-        once ``max_rollbacks`` rollbacks did not get through."""
+        """Back to the last good checkpoint, with the run's length it was written under (its ``schedule_fit`` is
+        restored with it, so the budget fit is made again as the run first made it), and every learning rate times
+        ``rollback_lr_factor``; a clear stop once ``max_rollbacks`` rollbacks did not get through."""
         cfg = self.config.optim
         failed_step = self.step
         if self.rollbacks >= cfg.max_rollbacks:
@@ -454,8 +461,12 @@ class Trainer:
                 "does: check the options (learning rates, eps) and the data"
             )
         rollbacks, lr_scale = self.rollbacks + 1, self.lr_scale * cfg.rollback_lr_factor
-        self.load_state_dict(load_checkpoint(checkpoint))
+        state = load_checkpoint(checkpoint)
+        self.load_state_dict(state)
         self.rollbacks, self.lr_scale = rollbacks, lr_scale
+        length = int(state["config"]["optim"]["iterations"])  # a budget fit after the checkpoint is undone with it
+        if length != self.config.optim.iterations:
+            self._set_length(length, checkpoint.parent)
         logger.warning(
             "step %d: %s; rolled back to step %d (rollback %d of at most %d) with learning rates x%g",
             failed_step, err, self.step, rollbacks, cfg.max_rollbacks, lr_scale,

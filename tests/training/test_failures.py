@@ -3,6 +3,8 @@ smaller learning rates, Ctrl-C stops after the step with a checkpoint, run folde
 resume refuses to change the data or the model, and every bad option is one line naming it."""
 import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
 
+import dataclasses
+import itertools
 import json
 import os
 import signal
@@ -67,6 +69,28 @@ def test_a_transient_nan_rolls_back_with_smaller_learning_rates(small_scene, sma
     means = trainer.optimizers["means"]
     assert means.optimizer.param_groups[0]["lr"] == pytest.approx(0.5 * means.schedule(9, means.optimizer.param_groups[0]["base_lr"]))
     assert finite_checkpoint_step(tmp_path / "checkpoint.pt") == 10
+
+
+def test_a_rollback_to_a_checkpoint_before_the_budget_fit_fits_the_planned_run_again(small_scene, small_config, tmp_path,
+                                                                                    monkeypatch):
+    """A budget fit lengthens the run after its last checkpoint, then a step diverges: the rollback restores the
+    length that checkpoint was written under with its state, so the fit is made again from the planned steps, as the
+    straight run made it (the stretch bound never applies to an already stretched length), and the loop runs to it."""
+
+    def run(out_dir):
+        cfg = small_config(out_dir, 40, time_budget_minutes=10.0, time_budget_policy="fill", time_budget_max_stretch=1.25)
+        cfg = dataclasses.replace(cfg, output=dataclasses.replace(cfg.output, checkpoint_every=10))
+        trainer = Trainer(cfg, small_scene)
+        trainer.clock = lambda readings=itertools.count(1): 0.5 * next(readings)  # 0.5 s a step: the budget is ample
+        return trainer.train()
+
+    straight = run(tmp_path / "straight")
+    assert straight["schedule_fit"]["step"] == 12 and straight["iterations"] == 50  # the bound: 1.25 x 40
+    nan_photometric_loss(monkeypatch, {14})  # after the fit at step 12; the last checkpoint is step 10's
+    rolled = run(tmp_path / "rolled")
+    assert rolled["rollbacks"] == 1 and rolled["iterations"] == 50 and rolled["stopped_by"] is None
+    assert rolled["schedule_fit"] == straight["schedule_fit"]  # planned 40, fitted 50 at step 12, refitted at 38
+    assert json.loads((tmp_path / "rolled" / "config.json").read_text())["optim"]["iterations"] == 50
 
 
 def test_non_finite_parameters_after_the_optimizer_step_roll_back(small_scene, small_config, tmp_path, monkeypatch):
