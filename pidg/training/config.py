@@ -108,7 +108,7 @@ class OptimConfig:
     time_budget_max_stretch: Annotated[float, AT_LEAST_ONE] = 1.5
     """time_budget_policy "fill": the longest a run is made, as a multiple of its planned iterations (a bound for
     machines much faster than the budget assumes: a GPU would otherwise train many times the planned steps; the cpu
-    preset's D-NeRF schedule sets 2)."""
+    preset's D-NeRF schedule sets 2, sized for its 30 minutes: raise it with a longer budget)."""
     dynamic_vote: Annotated[float, UNIT] = 0.4
     """Static/dynamic decoupling: a Gaussian is dynamic if inside the motion mask in more than this share of the
     training views that see it."""
