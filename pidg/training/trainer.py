@@ -316,7 +316,7 @@ class Trainer:
                         parts = self.train_step(log=logs)
                     except NonFiniteError as err:
                         self._roll_back(checkpoint, err)
-                        if iterations is None:  # the length the run had at that checkpoint (before a budget fit?)
+                        if iterations is None:  # the run's length as restored with that checkpoint
                             total = self.config.optim.iterations
                         bar.reset(total=total)
                         bar.update(self.step)
