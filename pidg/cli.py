@@ -322,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     scene.add_argument("--no-denoise", action="store_true", help="no OpenImageDenoise pass")
     scene.add_argument("--static-camera", action="store_true", help="a fixed camera instead of one orbiting the scene")
     scene.add_argument("--texture", choices=SCENE_TEXTURES, default="cells", help="surface pattern: cells (random-coloured "
-                       "Voronoi cells, not periodic) or checker (the scenes of the README's earlier issue-16 tables, whose "
+                       "Voronoi cells, not periodic) or checker (the scenes of docs/motion.md's earlier tables, whose "
                        "period a tumbling object's surface moves by in a frame)")
     scene.add_argument("--seed", type=int, default=0, help="placement, colours and camera start")
     scene.add_argument("--points", type=int, default=10_000, help="points sampled for points3d.ply")

@@ -221,7 +221,7 @@ def _render_flows(
 
 
 # The demo scene's frames carry their true depth (an RGB-D capture): a monocular orbit leaves the moving ring's depth
-# under-determined, which is what held its test views to ~24 dB. Weight chosen on a val split (README).
+# under-determined, which is what held its test views to ~24 dB. Weight chosen on a val split (docs/cpu-quality.md).
 DEMO_DEPTH_WEIGHT = 1.0
 # With depth maps and --flow lpfm, the flow loss also matches the surface's depth change (--flow.lambda_depth_change),
 # the component of the velocity a 2D flow cannot see; the unit weight puts it on the flow's footing (not tuned).

@@ -5,8 +5,8 @@ the same base config, seed and budget, so the rows differ only by the variant's 
 
 ``--seeds``: every scene x variant once per seed, and a spread line per scene x variant (mean, sample standard
 deviation, min-max over the seeds). A run is chaotic: two runs that differ in nothing but the seed (or in the
-order of floating-point sums) end ~1 dB apart on D-NeRF (README), so a difference between two single runs smaller
-than that spread says nothing.
+order of floating-point sums) end ~1 dB apart on D-NeRF (docs/cpu-quality.md), so a difference between two single
+runs smaller than that spread says nothing.
 """
 from __future__ import annotations
 

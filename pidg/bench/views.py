@@ -10,7 +10,8 @@ pixels and over the static rest):
 * training times seen by the test rig (off the orbit)        -> generalisation in viewpoint only;
 * held-out times seen by the test rig                        -> the test split itself.
 
-This is how the demo's train/test gap was found to be a viewpoint gap, not a time gap (README, "Train/test gap").
+This is how the demo's train/test gap was found to be a viewpoint gap, not a time gap (docs/cpu-quality.md, "The
+train/test gap").
 """
 from __future__ import annotations
 

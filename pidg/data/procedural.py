@@ -27,7 +27,8 @@ Images are RGBA renders (straight alpha); :func:`make_procedural_scene` composit
 background with exactly the arithmetic of the dataset loader, so the in-memory scene and the one read back from
 :func:`write_procedural_dataset`'s folder are identical. Every frame also has its true depth (camera z, as an
 RGB-D sensor would measure it), which a run may train against (``--optim.lambda_depth``): a monocular orbit leaves
-the moving ring's depth under-determined, and that, not the model, is what limits its novel views (README).
+the moving ring's depth under-determined, and that, not the model, is what limits its novel views
+(docs/cpu-quality.md, "The train/test gap").
 """
 
 from __future__ import annotations

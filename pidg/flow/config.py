@@ -46,7 +46,7 @@ class FlowConfig:
     x + v(x, t) dt, first order. midpoint (an extension): x + v(x + v(x, t) dt / 2, t + dt / 2) dt, the explicit
     midpoint rule, second order, for one more field evaluation per flow Gaussian. Where an object turns or
     accelerates, the true velocity does not match a displacement to first order (on the generated kinematic scene its
-    first-order flow is 0.84 px from the true motion, its second-order one 0.04 px: README, issue 16), so a first-order
+    first-order flow is 0.84 px from the true motion, its second-order one 0.04 px: docs/motion.md), so a first-order
     flow loss teaches v each interval's chord rather than the particles' velocity. Evaluation (``pidg eval
     --motion-gt``) scores the velocity flow with the run's own rule."""
     start: Annotated[int, NON_NEGATIVE] = 0
@@ -71,7 +71,7 @@ class FlowConfig:
     small images straddle an object's edge and smooth its motion into the background's: 2 cut the motion-flow
     target's error against the true motion by 40-45 % on the demo and generated scenes, 4 by another 6-32 % on the
     generated ones, and the full method's velocity flow on the generated scenes' val views was closer to the truth at 4 than at 2 in 9 of 10
-    runs (README, issue 16). On this project's 2-core machine a 400x400 flow takes ~0.45 s at 4, ~0.1 s at 2 and ~0.01
+    runs (docs/motion.md). On this project's 2-core machine a 400x400 flow takes ~0.45 s at 4, ~0.1 s at 2 and ~0.01
     s at 1, once (the flows are cached): ~2 minutes for a 150-frame scene at 4; 1 is the images' own resolution."""
     raft_weights: Path | None = None
     """Local RAFT weights (.pt2 export, TorchScript, or a torchvision state dict); nothing is downloaded."""

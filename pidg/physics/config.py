@@ -37,7 +37,7 @@ class PhysicsConfig:
     # (one block) the peak is ~40 MiB and checkpointing a single block saves nothing.
     checkpoint_blocks: bool = False
     """Recompute each block's activations in backward instead of storing them (less memory, more time)."""
-    # Off by default: not in the paper. Measured on generated scenes with ground-truth motion (README, issue 16).
+    # Off by default: not in the paper. Measured on generated scenes with ground-truth motion (docs/motion.md).
     lambda_kinematic: Annotated[float, NON_NEGATIVE] = 0.0
     """Weight of the particle-velocity consistency L_kin (pidg.physics.consistency): the material field's v at
     ``samples`` random particles against the deformation's own velocity there (detached), in box half-extents per

@@ -110,10 +110,10 @@ def _input(sockets: Any, name: str, kind: str | None = None) -> Any:
 
 
 #: ``make-scene --texture``: cells (random-coloured Voronoi cells, not periodic) or checker (a two-colour checker, the
-#: scenes of the README's issue-16 tables measured before 2026-11-28), each the same size (``scale`` cells a unit: ~6
+#: scenes of docs/motion.md's tables measured before 2026-11-28), each the same size (``scale`` cells a unit: ~6
 #: px across on the rigid bodies at the default 200 px) and times the same fine noise. The checker's period on screen
 #: (~12 px) is about what a tumbling rigid body's surface moves in a frame: the optical flow then locks onto the
-#: wrong period (README, issue 16).
+#: wrong period (docs/motion.md).
 TEXTURES = ("cells", "checker")
 
 

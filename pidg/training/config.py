@@ -227,7 +227,7 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 }
 
 #: The cpu preset's schedule for D-NeRF scenes (``layout`` "dnerf"), chosen on the validation split of bouncingballs
-#: and jumpingjacks at 400x400 (README, "D-NeRF on a CPU"): densification until 5000 with an opacity reset every 2000
+#: and jumpingjacks at 400x400 (docs/cpu-quality.md): densification until 5000 with an opacity reset every 2000
 #: steps leaves 3000 steps to recover from each reset; the earlier 3600-step schedule densified until 2000 with a
 #: reset at 1000, whose pruning took 22k Gaussians down to 4k and left bouncingballs blurred (33.4 dB on val; 36.2
 #: with this schedule at 16 temporal cells). Uncapped, lego grew past 120k Gaussians (1.5 it/s): densification stops
@@ -243,7 +243,7 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 #: The cpu preset's share of the flow loss's tiles read per step (``FlowConfig.tile_fraction``; the paper preset reads
 #: all): half a band of tiles takes the full method's step from x1.61 to x1.48 of the base step (bouncingballs, 18k
 #: trained Gaussians, 400x400), and on the three scenes with true motion (the demo, make-scene kinematic and rigid)
-#: PSNR and flow errors moved by less than one run's own noise (README, "Measured on this project's 2-core CPU").
+#: PSNR and flow errors moved by less than one run's own noise (docs/cpu-speed.md).
 #: The schedule is fitted to a 30-minute budget (``OptimConfig.time_budget_policy`` "fill"): the same 12000 steps took
 #: 20-28 minutes on one processor of this machine and 31.6-39.5 on another, so a fixed count cannot promise the
 #: budget; fitted, a slow machine shortens the run once the model's size settles, and a fast one lengthens it (up
@@ -252,7 +252,7 @@ ABLATION_VARIANTS: dict[str, dict[str, str]] = {
 #: t < 0.2: 37.3 / 36.0 -> 41.3 / 43.1 dB), where the 12000-step model still lagged the balls' fall by 1-2 frames.
 #: The bound on that lengthening is x2: with a x1.10 faster step the x1.5 bound (18000 steps) cut runs minutes short
 #: of the budget, and two seeds run again to x2 (the same runs to the fit) scored higher on val: bouncingballs seed 8
-#: 18000 -> 20304 steps, 41.06 -> 41.24 dB; seed 9 17891 -> 22873 steps, 41.05 -> 41.53 (README, "D-NeRF on a CPU").
+#: 18000 -> 20304 steps, 41.06 -> 41.24 dB; seed 9 17891 -> 22873 steps, 41.05 -> 41.53 (docs/cpu-quality.md).
 CPU_FLOW_TILE_FRACTION = 0.5
 CPU_DNERF_SCHEDULE = {"iterations": 12_000, "densify_start": 300, "densify_stop": 5000, "opacity_reset_every": 2000,
                       "random_init_points": 20_000, "max_gaussians": 30_000, "temporal_finest": (32, 32, 64),

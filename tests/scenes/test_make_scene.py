@@ -104,7 +104,7 @@ def test_static_camera_keeps_every_training_view(tmp_path):
 
 def test_the_textures_change_the_surfaces_only(tmp_path):
     """Each texture draws the same random numbers, so the scenes differ in their pixels alone: the same simulation,
-    ground-truth motion, cameras and masks (the checker scenes of the README's earlier tables stay reproducible)."""
+    ground-truth motion, cameras and masks (the checker scenes of docs/motion.md's earlier tables stay reproducible)."""
     for texture in bb.TEXTURES:
         make_scene(SceneOptions("rigid", frames=6, width=32, height=32, samples=1, denoise=False, points=200,
                                 texture=texture), tmp_path / texture)
