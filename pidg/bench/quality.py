@@ -53,11 +53,11 @@ def run_quality_bench(
 
 #: Columns against ground-truth motion, shown when a scene carries it (pidg.evaluation.motion): motion-flow,
 #: velocity-flow and zero-motion EPE (px), relative 3D velocity error of the deformation and of v, vertex coverage,
-#: the EPE (px) of the flow target LPFM trains against (training pairs), and the 3D tracking relative error (of every
-#: match, and of those whose Gaussian the anchor's view sees).
+#: the EPE (px) of the flow target LPFM trains against (training pairs), the 3D tracking relative error (of every
+#: match, and of those whose Gaussian the anchor's view sees), and the rigid objects' spin relative error.
 MOTION_COLUMNS = tuple((key, short, fmt) for (key, _, fmt), short in
                        zip(MOTION, ("gtEPE-m", "gtEPE-v", "gtEPE-0", "relV-def", "relV-v", "cover", "gtEPE-tgt", "track",
-                                    "track-seen"), strict=True))
+                                    "track-seen", "spin"), strict=True))
 
 
 #: what the seed spread summarises: the image metrics, the run's cost and the motion columns

@@ -240,7 +240,8 @@ MOTION = (("gt_motion_flow_epe", "motion-flow EPE px", ".2f"), ("gt_velocity_flo
           ("gt_zero_motion_epe", "zero-motion EPE px", ".2f"), ("gt_velocity_rel_deformation", "3D velocity rel. error, deformation", ".3f"),
           ("gt_velocity_rel_field", "3D velocity rel. error, v", ".3f"), ("gt_coverage", "vertex coverage", ".3f"),
           ("gt_target_flow_epe", "flow-target EPE px (training pairs)", ".2f"),
-          ("gt_track_rel", "3D tracking rel. error", ".3f"), ("gt_track_rel_seen", "3D tracking rel. error, seen Gaussians", ".3f"))
+          ("gt_track_rel", "3D tracking rel. error", ".3f"), ("gt_track_rel_seen", "3D tracking rel. error, seen Gaussians", ".3f"),
+          ("gt_spin_rel", "rigid spin rel. error", ".3f"))
 SSIM_NAMES = {"zeros": "SSIM: zero-padded Gaussian window (the 3DGS family's tables)",
               "valid": "SSIM: valid filtering (Wang et al. 2004, skimage)"}
 

@@ -45,6 +45,16 @@ others), which neither the pixels nor a flow loss constrain there. Per-frame flo
 most; a model that rebuilds a moving object from other Gaussians as it goes (the positions right, the particles'
 identity lost) scores well there and only fails here.
 
+**Spin (rigid objects).** From each scored view's time t that has a vertex sample at t and t + ``frame_interval``:
+every ground-truth object whose vertices move rigidly over that interval (the best rigid fit leaves an RMS residual
+of at most :data:`RIGID_TOLERANCE` of the object's size) and turn at least :data:`SPIN_FLOOR_DEG` degrees is scored:
+its true rotation R (:func:`best_rotation` of its vertices at t onto t + interval) against the rotation R_m of the
+distinct Gaussians matched to its vertices at t (the 3D velocity's matching), deformed to t and t + interval; error
+= the angle of R_m R^T (degrees; a model whose Gaussians do not turn scores the true angle). Reported: the mean true,
+learned and error angles per interval, relative = pooled error / pooled true angle (0: the particles spin with the
+body; 1: no better than not turning), also per object. A model that draws a body with a relay of Gaussians (each
+carried a short way, then handed on) moves the texture without turning it, and fails here.
+
 **The flow target (training pairs).** What LPFM pulls the model's flows towards, the motion-flow target of each
 training pair (:func:`pidg.flow.model_flow_target`: the optical flow minus the camera flow of frame t+1's depth, the
 dataset's or the model's own render, inside the motion mask), scored against the true flow of frame t on the pixels
@@ -76,6 +86,12 @@ RADIUS_FRACTION = 0.02
 """Default matching radius: this fraction of the diagonal of the ground-truth vertices' bounding box."""
 SPEED_FLOOR_FRACTION = 0.1
 """Default speed floor of the relative error: this fraction of the mean true speed."""
+RIGID_TOLERANCE = 0.01
+"""An object moves rigidly over an interval when its best rigid fit's RMS residual is at most this fraction of the
+diagonal of its vertices' bounding box (a generator's rigid body fits to float precision; cloth does not)."""
+SPIN_FLOOR_DEG = 1.0
+"""Intervals in which a rigid object turns less than this (degrees) are not scored for spin: there is no rotation to
+learn, and the scatter of the matched Gaussians would make the error a measure of noise."""
 MODEL_MIN_ALPHA = 0.5
 """A pixel is covered by the model where its accumulated alpha exceeds this."""
 _TIME_TOL = 1e-6
@@ -154,6 +170,19 @@ class TrackingScores:
 
 
 @dataclass
+class SpinScores:
+    """Rigid objects' rotation over one ground-truth frame interval, true against learned (degrees per interval; see
+    the module docstring)."""
+
+    intervals: int  # (view time, rigid object) pairs scored
+    true_deg: float | None  # mean true rotation angle
+    learned_deg: float | None  # mean rotation angle of the matched Gaussians
+    error_deg: float | None  # mean angle of R_learned R_true^T
+    relative: float | None  # pooled error / pooled true angle
+    per_object: dict[str, float | None] = field(default_factory=dict)  # relative, per scored object
+
+
+@dataclass
 class TargetScores:
     """The training pairs' motion-flow target against the true flow of their first frame (pixels), pooled over the
     scored pairs. Scored pixels: supervised by the target, and a dynamic surface in the truth."""
@@ -185,6 +214,7 @@ class MotionEvaluation:
     units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
     target: TargetScores | None = None  # the training pairs' flow target (:func:`evaluate_flow_target`)
     tracking: TrackingScores | None = None  # None: fewer than two vertex sample times
+    spin: SpinScores | None = None  # None: no rigidly moving object turned in a scored interval
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -200,6 +230,7 @@ class MotionEvaluation:
             "gt_coverage": self.velocity.coverage,
             "gt_track_rel": None if self.tracking is None else self.tracking.relative,
             "gt_track_rel_seen": None if self.tracking is None else self.tracking.seen_relative,
+            "gt_spin_rel": None if self.spin is None else self.spin.relative,
             "gt_target_flow_epe": None if self.target is None else self.target.target_epe,
         }
 
@@ -218,6 +249,7 @@ class MotionEvaluation:
             f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} (second order "
             f"{_px(v.truth_velocity_flow_second_order_px)}) from the true displacement"
             + ("" if self.tracking is None else f"; {_tracking_text(self.tracking)}")
+            + ("" if self.spin is None else f"; {_spin_text(self.spin)}")
             + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
                f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
         )
@@ -259,6 +291,12 @@ def _tracking_text(t: TrackingScores) -> str:
     return (f"3D tracking from the {t.anchors} view times through the recording: error {_num(t.error)} vs travel "
             f"{_num(t.travel)} world units (relative {_num(t.relative)}{objects}; the {_pct(t.seen_share)} whose "
             f"Gaussian the view sees: {_num(t.seen_relative)})")
+
+
+def _spin_text(s: SpinScores) -> str:
+    objects = "".join(f"; {name} {_num(rel)}" for name, rel in s.per_object.items()) if len(s.per_object) > 1 else ""
+    return (f"rigid spin over {s.intervals} object intervals: true {_num(s.true_deg)}°, learned {_num(s.learned_deg)}°, "
+            f"error {_num(s.error_deg)}° a frame interval (relative {_num(s.relative)}{objects})")
 
 
 def _px(v: float | None) -> str:
@@ -500,10 +538,12 @@ def evaluate_motion(
                              velocity_integration)
     velocity = _velocity_scores(gathered, len(matches), radius, h, speed_floor, truth.frame_interval)
     tracking, per_anchor = _tracking_scores(model, truth, dict(sorted(matches.items())))
+    spin, spin_per_anchor = _spin_scores(model, truth, dict(sorted(matches.items())))
     for record in per_frame:
         record.update(per_anchor.get(record["time"], {}))
+        record.update(spin_per_anchor.get(record["time"], {}))
     return MotionEvaluation(split, str(truth.root.parent), truth.frame_interval, flow_scores, velocity, per_frame,
-                            tracking=tracking)
+                            tracking=tracking, spin=spin)
 
 
 def _tracking_scores(
@@ -554,6 +594,66 @@ def _tracking_scores(
         per_object={obj.name: _ratio(e, t) for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
         seen_share=_ratio(seen_matches, matched), seen_relative=_ratio(seen_error, seen_travel),
     )
+    return scores, per_anchor
+
+
+def best_rotation(source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    """The rotation R [3, 3] that best carries the points ``source`` [M, 3] onto ``target`` [M, 3], both centred on
+    their means (least squares, Kabsch: from the SVD of the cross-covariance, with the sign that excludes a
+    reflection), and the fit's RMS residual (the points' units); float64."""
+    a = source.double() - source.double().mean(0)
+    b = target.double() - target.double().mean(0)
+    u, _, vh = torch.linalg.svd(a.T @ b)
+    d = torch.ones(3, dtype=torch.float64, device=a.device)
+    d[2] = torch.sign(torch.linalg.det(vh.T @ u.T))
+    rotation = vh.T @ torch.diag(d) @ u.T
+    residual = ((a @ rotation.T - b).square().sum(-1).mean()).sqrt()
+    return rotation, residual
+
+
+def rotation_angle_deg(rotation: Tensor) -> float:
+    """The angle of a rotation matrix [3, 3], degrees in [0, 180]."""
+    cos = ((torch.trace(rotation) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    return float(torch.rad2deg(torch.arccos(cos)))
+
+
+@torch.no_grad()
+def _spin_scores(
+    model: DynamicGaussians, truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor, Tensor]]
+) -> tuple[SpinScores | None, dict[float, dict[str, float | None]]]:
+    """The spin scores (module docstring) and, per view time scored, its mean true and error angles over the objects
+    (``spin_true_deg``, ``spin_error_deg``). ``matches`` as :func:`_tracking_scores` takes them."""
+    vertices = truth.vertices
+    scored: list[tuple[str, float, float, float]] = []  # per (view time, object): its true, learned and error angles
+    per_anchor: dict[float, dict[str, float | None]] = {}
+    for t, (verts, gauss, _) in matches.items():
+        if not len(verts) or not _has_sample(truth, t + truth.frame_interval):
+            continue
+        k, k1 = vertices.index_of(t, _TIME_TOL), vertices.index_of(t + truth.frame_interval, _TIME_TOL)
+        before = len(scored)
+        for obj in truth.objects:
+            ours = torch.unique(gauss[(verts >= obj.first_vertex) & (verts < obj.first_vertex + obj.n_vertices)])
+            if len(ours) < 3:
+                continue
+            x0, x1 = (torch.from_numpy(vertices.positions[i, obj.first_vertex : obj.first_vertex + obj.n_vertices]) for i in (k, k1))
+            true_rotation, residual = best_rotation(x0, x1)
+            true_angle = rotation_angle_deg(true_rotation)
+            size = float((x0.max(0).values - x0.min(0).values).norm())
+            if float(residual) > RIGID_TOLERANCE * size or true_angle < SPIN_FLOOR_DEG:
+                continue
+            learned, _ = best_rotation(model.at(t, rows=ours).means.cpu(), model.at(t + truth.frame_interval, rows=ours).means.cpu())
+            scored.append((obj.name, true_angle, rotation_angle_deg(learned), rotation_angle_deg(learned @ true_rotation.T)))
+        if len(scored) > before:
+            view = scored[before:]
+            per_anchor[t] = {"spin_true_deg": sum(r[1] for r in view) / len(view),
+                             "spin_error_deg": sum(r[3] for r in view) / len(view)}
+    if not scored:
+        return None, per_anchor
+    true, learned, error = (sum(r[i] for r in scored) for i in (1, 2, 3))
+    per_object = {obj.name: _ratio(sum(r[3] for r in scored if r[0] == obj.name), sum(r[1] for r in scored if r[0] == obj.name))
+                  for obj in truth.objects if any(r[0] == obj.name for r in scored)}
+    scores = SpinScores(intervals=len(scored), true_deg=true / len(scored), learned_deg=learned / len(scored),
+                        error_deg=error / len(scored), relative=_ratio(error, true), per_object=per_object)
     return scores, per_anchor
 
 

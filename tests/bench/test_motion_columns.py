@@ -14,7 +14,7 @@ from pidg.models.deformation import HashGridConfig
 from pidg.training.config import TrainConfig
 
 GT_KEYS = {"gt_motion_flow_epe", "gt_velocity_flow_epe", "gt_zero_motion_epe", "gt_velocity_rel_deformation",
-           "gt_velocity_rel_field", "gt_coverage", "gt_target_flow_epe", "gt_track_rel", "gt_track_rel_seen"}
+           "gt_velocity_rel_field", "gt_coverage", "gt_target_flow_epe", "gt_track_rel", "gt_track_rel_seen", "gt_spin_rel"}
 
 
 def _row(scene, variant, **extra):
@@ -30,17 +30,17 @@ def test_tables_show_motion_columns_only_with_ground_truth():
     assert "Motion against ground-truth motion" not in tables_markdown(build_tables(plain, ("psnr",)), "t")
     gt = {"gt_motion_flow_epe": 0.95, "gt_velocity_flow_epe": None, "gt_zero_motion_epe": 1.62,
           "gt_velocity_rel_deformation": 0.659, "gt_velocity_rel_field": None, "gt_coverage": 0.729,
-          "gt_target_flow_epe": 0.74, "gt_track_rel": 0.413, "gt_track_rel_seen": 0.208}
+          "gt_target_flow_epe": 0.74, "gt_track_rel": 0.413, "gt_track_rel_seen": 0.208, "gt_spin_rel": 0.871}
     rows = [_row("a", "base", **gt), _row("a", "cmr", **{**gt, "gt_velocity_flow_epe": 1.5, "gt_velocity_rel_field": 0.9})]
     table = format_table(rows).splitlines()
     assert "gtEPE-m" in table[0] and "relV-v" in table[0] and "cover" in table[0] and "gtEPE-tgt" in table[0] and "track" in table[0]
-    assert table[1].split()[-9:] == ["0.95", "-", "1.62", "0.659", "-", "0.729", "0.74", "0.413", "0.208"]
-    assert table[0].split()[-3:] == ["gtEPE-tgt", "track", "track-seen"]  # names wider than a column stay apart
+    assert table[1].split()[-10:] == ["0.95", "-", "1.62", "0.659", "-", "0.729", "0.74", "0.413", "0.208", "0.871"]
+    assert table[0].split()[-4:] == ["gtEPE-tgt", "track", "track-seen", "spin"]  # names wider than a column stay apart
     assert len(table[0]) == len(table[1])  # and the figures stay under them
     tables = build_tables(rows, ("psnr",))
     assert tables["motion"]["PIDG w/o LPFM"]["gt_velocity_rel_field"] == pytest.approx(0.9)
     text = tables_markdown(tables, "t")
-    assert "Motion against ground-truth motion" in text and "| PIDG w/o (CMR + LPFM) | 0.95 | - | 1.62 | 0.659 | - | 0.729 | 0.74 | 0.413 | 0.208 |" in text
+    assert "Motion against ground-truth motion" in text and "| PIDG w/o (CMR + LPFM) | 0.95 | - | 1.62 | 0.659 | - | 0.729 | 0.74 | 0.413 | 0.208 | 0.871 |" in text
 
 
 @pytest.mark.filterwarnings("ignore:ms_ssim reported as None")  # 32 px images are below MS-SSIM's minimum

@@ -22,11 +22,15 @@ from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.motion import (
     RADIUS_FRACTION,
     SEEN_MIN_WEIGHT,
+    SPIN_FLOOR_DEG,
+    _spin_scores,
     _tracking_text,
+    best_rotation,
     default_radius,
     evaluate_flow_target,
     evaluate_motion,
     rendered_weights,
+    rotation_angle_deg,
     seen_gaussians,
     target_flow_sums,
     velocity_per_dataset_time,
@@ -191,13 +195,14 @@ def test_matching_truth_gives_zero_error_and_zero_motion_gives_the_flow_size(tmp
     assert [r["view"] for r in data["per_frame"]] == ["test/r_0000", "test/r_0001"]
     assert set(result.columns()) == {"gt_motion_flow_epe", "gt_velocity_flow_epe", "gt_zero_motion_epe",
                                      "gt_velocity_rel_deformation", "gt_velocity_rel_field", "gt_coverage",
-                                     "gt_target_flow_epe", "gt_track_rel", "gt_track_rel_seen"}
+                                     "gt_target_flow_epe", "gt_track_rel", "gt_track_rel_seen", "gt_spin_rel"}
     assert result.target is None and result.columns()["gt_target_flow_epe"] is None
     track = result.tracking  # each anchor against the other sample time, 0.25 of dataset time away
     assert (track.anchors, track.samples, track.coverage) == (2, 2 * len(truth.vertices.positions[0]), 1.0)
     assert track.error == pytest.approx(0.0, abs=1e-5) and track.relative == pytest.approx(0.0, abs=1e-5)
     assert track.travel == pytest.approx(0.25 * float(VELOCITY.norm()), rel=1e-5)
     assert data["per_frame"][0]["track_travel"] == pytest.approx(track.travel, rel=1e-5)
+    assert result.spin is None and result.columns()["gt_spin_rel"] is None  # a translating plane has no spin to score
     assert "motion-flow EPE 0.000 px" in result.summary()
 
 
@@ -564,3 +569,114 @@ def test_cli_eval_motion_gt_without_truth_is_one_line_naming_the_file(tiny_run, 
         hidden.rename(truth)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "motion_gt/meta.json" in err[0] and "no ground-truth motion" in err[0]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# spin: rigid objects' rotation over one frame interval
+# ---------------------------------------------------------------------------------------------------------------
+def rodrigues(axis: Tensor, degrees: float) -> Tensor:
+    """The rotation by ``degrees`` about ``axis``, by Rodrigues' formula (float64): the independent closed form."""
+    k = axis.double() / axis.double().norm()
+    cross = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]], dtype=torch.float64)
+    theta = math.radians(degrees)
+    return torch.eye(3, dtype=torch.float64) + math.sin(theta) * cross + (1 - math.cos(theta)) * cross @ cross
+
+
+@pytest.mark.parametrize("degrees", [0.5, 10.0, 90.0, 179.0])
+def test_best_rotation_recovers_a_known_rotation_and_its_angle(degrees):
+    g = torch.Generator().manual_seed(3)
+    points = torch.randn(40, 3, generator=g, dtype=torch.float64)
+    rotation = rodrigues(torch.tensor([0.3, -1.0, 0.5]), degrees)
+    moved = points @ rotation.T + torch.tensor([2.0, -1.0, 0.5], dtype=torch.float64)  # turned, then carried off
+    found, residual = best_rotation(points, moved)
+    torch.testing.assert_close(found, rotation, atol=1e-9, rtol=0)
+    assert float(residual) < 1e-9 and rotation_angle_deg(found) == pytest.approx(degrees, abs=1e-6)
+    # a flat point set (where the unconstrained fit is a reflection) still gives the rotation, det +1
+    flat = points.clone()
+    flat[:, 2] = 0
+    found_flat, _ = best_rotation(flat, flat @ rotation.T)
+    assert float(torch.linalg.det(found_flat)) == pytest.approx(1.0)
+    torch.testing.assert_close(flat @ found_flat.T, flat @ rotation.T, atol=1e-9, rtol=0)
+    # a motion that is not rigid leaves a residual: the points scaled by 1.1 about their mean
+    _, stretched = best_rotation(points, 1.1 * (points - points.mean(0)))
+    assert float(stretched) > 0.05
+
+
+class Spin(DeformationModel):
+    """Every Gaussian turns about ``centre`` (axis z) by ``rate`` degrees per unit of dataset time."""
+
+    def __init__(self, centre: Tensor, rate: float) -> None:
+        super().__init__()
+        self.register_buffer("centre", centre.clone())
+        self.rate = rate
+
+    def deform(self, means, quats, log_scales, times, regularize=False) -> DeformedGaussians:
+        theta = torch.deg2rad(self.rate * times)
+        c, s = torch.cos(theta), torch.sin(theta)
+        x, y = means[:, 0] - self.centre[0], means[:, 1] - self.centre[1]
+        turned = torch.stack([self.centre[0] + c * x - s * y, self.centre[1] + s * x + c * y, means[:, 2]], dim=-1)
+        return DeformedGaussians(turned, quats, log_scales)
+
+
+def spinning_truth(root, rate: float, stretch: float = 0.0):
+    """A ring of vertices (one object) turning about (0.2, 0.1, Z) at ``rate`` degrees per unit of dataset time,
+    sampled at 0.25 and 0.25 + DT; ``stretch``: it also grows by that fraction per unit of dataset time (not rigid)."""
+    angles = torch.linspace(0, 2 * math.pi, 13)[:-1]
+    ring = torch.stack([0.2 + 0.4 * torch.cos(angles), 0.1 + 0.3 * torch.sin(angles), torch.full_like(angles, Z)], -1)
+    centre = torch.tensor([0.2, 0.1, Z])
+    times = (0.25, 0.25 + DT)
+    positions = []
+    for t in times:
+        turned = Spin(centre, rate).deform(ring, torch.zeros(12, 4), torch.zeros(12, 3), torch.full((12,), t)).means
+        positions.append((centre + (1 + stretch * t) * (turned - centre)).numpy())
+    motion = VertexMotion(np.asarray(times), np.stack(positions).astype(np.float32), np.zeros((2, 12, 3), np.float32),
+                          np.zeros((0, 3), np.int64))
+    write_motion_gt(root, DT, [MotionObject("ring", "rigid", 0, 12)], motion)
+    return read_motion_gt(root), ring, centre
+
+
+def ring_model(ring: Tensor, deformation: DeformationModel) -> DynamicGaussians:
+    n = len(ring)
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1
+    gaussians = GaussianModel(ring.clone(), quats, torch.full((n, 3), math.log(0.02)), torch.full((n,), 4.0),
+                              torch.rand(n, 1, 3, generator=torch.Generator().manual_seed(0)), torch.zeros(n, 0, 3), sh_degree=0)
+    return DynamicGaussians(gaussians, deformation, None, TimeAxis(S, 1.0 / S), torch.zeros(3), backend="cpu")
+
+
+def ring_matches(model: DynamicGaussians, truth, t: float = 0.25):
+    """Each vertex at t matched to the Gaussian at the same place (as the 3D velocity's matching does)."""
+    points = torch.from_numpy(truth.vertices.positions[truth.vertices.index_of(t)])
+    gauss = torch.cdist(points, model.at(t).means).argmin(dim=1)
+    return {t: (torch.arange(len(points)), gauss, torch.ones(len(points), dtype=torch.bool))}
+
+
+def test_spin_is_zero_error_for_gaussians_that_turn_with_the_body_and_the_whole_angle_for_a_translation(tmp_path):
+    rate = 80.0  # degrees per unit of dataset time: 10 degrees over one frame interval
+    truth, ring, centre = spinning_truth(tmp_path / "motion_gt", rate)
+    carried = ring_model(Spin(centre, rate).deform(ring, torch.zeros(12, 4), torch.zeros(12, 3), torch.zeros(12)).means,
+                         Spin(centre, rate))
+    spin, per_anchor = _spin_scores(carried, truth, ring_matches(carried, truth))
+    assert spin.intervals == 1 and spin.true_deg == pytest.approx(rate * DT, abs=1e-3)
+    assert spin.learned_deg == pytest.approx(rate * DT, abs=1e-3) and spin.error_deg == pytest.approx(0.0, abs=1e-3)
+    assert spin.relative == pytest.approx(0.0, abs=1e-4) and spin.per_object == {"ring": pytest.approx(0.0, abs=1e-4)}
+    assert per_anchor[0.25]["spin_true_deg"] == pytest.approx(rate * DT, abs=1e-3)
+    # Gaussians that follow the body's centre but do not turn: the error is the whole true angle, relative 1
+    translated = ring_model(ring, Translation(torch.zeros(3)))
+    spin, _ = _spin_scores(translated, truth, ring_matches(translated, truth))
+    assert spin.learned_deg == pytest.approx(0.0, abs=1e-4) and spin.error_deg == pytest.approx(rate * DT, abs=1e-3)
+    assert spin.relative == pytest.approx(1.0, abs=1e-4)
+    # turning the other way: twice the angle
+    backwards = ring_model(ring, Spin(centre, -rate))
+    spin, _ = _spin_scores(backwards, truth, ring_matches(backwards, truth))
+    assert spin.error_deg == pytest.approx(2 * rate * DT, abs=1e-3) and spin.relative == pytest.approx(2.0, abs=1e-3)
+
+
+def test_spin_leaves_out_bodies_that_barely_turn_or_are_not_rigid(tmp_path):
+    slow = SPIN_FLOOR_DEG / DT / 2  # half a floor over one interval
+    truth, ring, _ = spinning_truth(tmp_path / "slow", slow)
+    model = ring_model(ring, Translation(torch.zeros(3)))
+    assert _spin_scores(model, truth, ring_matches(model, truth)) == (None, {})
+    truth, ring, _ = spinning_truth(tmp_path / "stretching", 80.0, stretch=0.5)  # turns 10 degrees and grows 6 %
+    model = ring_model(ring, Translation(torch.zeros(3)))
+    assert _spin_scores(model, truth, ring_matches(model, truth)) == (None, {})
