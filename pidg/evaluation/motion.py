@@ -45,9 +45,10 @@ others), which neither the pixels nor a flow loss constrain there. Per-frame flo
 most; a model that rebuilds a moving object from other Gaussians as it goes (the positions right, the particles'
 identity lost) scores well there and only fails here.
 
-**Spin (rigid objects).** From each scored view's time t that has a vertex sample at t and t + ``frame_interval``:
-every ground-truth object whose vertices move rigidly over that interval (the best rigid fit leaves an RMS residual
-of at most :data:`RIGID_TOLERANCE` of the object's size) and turn at least :data:`SPIN_FLOOR_DEG` degrees is scored:
+**Spin (rigid objects).** From each scored view's time t that has a vertex sample at t and t + ``frame_interval``
+(at most 1, as for the flows): every ground-truth object whose vertices move rigidly over that interval (the best
+rigid fit leaves an RMS residual of at most :data:`RIGID_TOLERANCE` of the object's size) and turn at least
+:data:`SPIN_FLOOR_DEG` degrees is scored:
 its true rotation R (:func:`best_rotation` of its vertices at t onto t + interval) against the rotation R_m of the
 distinct Gaussians matched to its vertices at t (the 3D velocity's matching), deformed to t and t + interval; error
 = the angle of R_m R^T (degrees; a model whose Gaussians do not turn scores the true angle). Reported: the mean true,
@@ -537,8 +538,10 @@ def evaluate_motion(
     flow_scores = FlowScores(scored, pixels, average("motion"), average("velocity"), average("gaussian"), average("zero"), skipped,
                              velocity_integration)
     velocity = _velocity_scores(gathered, len(matches), radius, h, speed_floor, truth.frame_interval)
-    tracking, per_anchor = _tracking_scores(model, truth, dict(sorted(matches.items())))
-    spin, spin_per_anchor = _spin_scores(model, truth, dict(sorted(matches.items())))
+    matches = dict(sorted(matches.items()))
+    followed = _follow_matches(model, truth, matches)
+    tracking, per_anchor = _tracking_scores(truth, matches, followed)
+    spin, spin_per_anchor = _spin_scores(truth, matches, followed)
     for record in per_frame:
         record.update(per_anchor.get(record["time"], {}))
         record.update(spin_per_anchor.get(record["time"], {}))
@@ -546,30 +549,54 @@ def evaluate_motion(
                             tracking=tracking, spin=spin)
 
 
-def _tracking_scores(
+@dataclass
+class FollowedGaussians:
+    """The Gaussians matched at any view time (``matches``), deformed to every ground-truth sample time in [0, 1]:
+    the i-th of those times is vertex sample ``sample_of[i]``, ``means`` [T, R, 3] their centres, ``slot`` [N] a
+    Gaussian's column in ``means`` (-1: matched nowhere)."""
+
+    sample_of: list[int]
+    means: Tensor
+    slot: Tensor
+
+
+@torch.no_grad()
+def _follow_matches(
     model: DynamicGaussians, truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor, Tensor]]
-) -> tuple[TrackingScores | None, dict[float, dict[str, float | None]]]:
-    """The 3D tracking scores (module docstring) and, per anchor time, its ``track_error`` and ``track_travel``.
-    ``matches``: per anchor time, the matched vertices, their Gaussians (the 3D velocity's matching,
-    :func:`_velocity_at`) and whether the anchor's view sees each (:func:`seen_gaussians`); one deformation per
-    ground-truth sample time follows them."""
+) -> FollowedGaussians | None:
+    """One deformation per ground-truth sample time in [0, 1] of every matched Gaussian, shared by the tracking and
+    the spin (None: fewer than two sample times, or no match)."""
     vertices = truth.vertices
     times = [float(t) for t in vertices.times if -_TIME_TOL <= t <= 1.0 + _TIME_TOL]
     if len(times) < 2 or not matches:
-        return None, {}
-    n_vertices = len(matches) * vertices.positions.shape[1]
+        return None
     rows = torch.unique(torch.cat([g for _, g, _ in matches.values()]))
     slot = torch.full((model.num_gaussians,), -1, dtype=torch.long, device=model.device)
     slot[rows] = torch.arange(len(rows), device=model.device)
-    followed = torch.stack([model.at(t, rows=rows).means for t in times])  # [T, R, 3]
-    sample_of = [vertices.index_of(t, _TIME_TOL) for t in times]
-    truth_at = torch.from_numpy(vertices.positions[sample_of]).to(model.device)  # [T, V, 3]
+    means = torch.stack([model.at(t, rows=rows).means for t in times])  # [T, R, 3]
+    return FollowedGaussians([vertices.index_of(t, _TIME_TOL) for t in times], means, slot)
+
+
+def _tracking_scores(
+    truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor, Tensor]], follow: FollowedGaussians | None
+) -> tuple[TrackingScores | None, dict[float, dict[str, float | None]]]:
+    """The 3D tracking scores (module docstring) and, per anchor time, its ``track_error`` and ``track_travel``.
+    ``matches``: per anchor time, the matched vertices, their Gaussians (the 3D velocity's matching,
+    :func:`_velocity_at`) and whether the anchor's view sees each (:func:`seen_gaussians`); ``follow``: those
+    Gaussians at every sample time (:func:`_follow_matches`)."""
+    if follow is None:
+        return None, {}
+    vertices = truth.vertices
+    device = follow.means.device
+    n_vertices = len(matches) * vertices.positions.shape[1]
+    sample_of, followed, slot = follow.sample_of, follow.means, follow.slot
+    truth_at = torch.from_numpy(vertices.positions[sample_of]).to(device)  # [T, V, 3]
     error_sum = travel_sum = seen_error = seen_travel = 0.0
     samples = matched = seen_matches = 0
-    owner = torch.zeros(vertices.positions.shape[1], dtype=torch.long, device=model.device)  # vertex -> object
+    owner = torch.zeros(vertices.positions.shape[1], dtype=torch.long, device=device)  # vertex -> object
     for i, obj in enumerate(truth.objects):
         owner[obj.first_vertex : obj.first_vertex + obj.n_vertices] = i
-    object_sums = torch.zeros(len(truth.objects), 2, dtype=torch.float64, device=model.device)  # error, travel
+    object_sums = torch.zeros(len(truth.objects), 2, dtype=torch.float64, device=device)  # error, travel
     per_anchor: dict[float, dict[str, float | None]] = {}
     for t_a, (verts, gauss, seen) in matches.items():
         k = vertices.index_of(t_a, _TIME_TOL)
@@ -617,12 +644,13 @@ def rotation_angle_deg(rotation: Tensor) -> float:
     return float(torch.rad2deg(torch.arccos(cos)))
 
 
-@torch.no_grad()
 def _spin_scores(
-    model: DynamicGaussians, truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor, Tensor]]
+    truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor, Tensor]], follow: FollowedGaussians | None
 ) -> tuple[SpinScores | None, dict[float, dict[str, float | None]]]:
     """The spin scores (module docstring) and, per view time scored, its mean true and error angles over the objects
-    (``spin_true_deg``, ``spin_error_deg``). ``matches`` as :func:`_tracking_scores` takes them."""
+    (``spin_true_deg``, ``spin_error_deg``). ``matches`` and ``follow`` as :func:`_tracking_scores` takes them."""
+    if follow is None:
+        return None, {}
     vertices = truth.vertices
     scored: list[tuple[str, float, float, float]] = []  # per (view time, object): its true, learned and error angles
     per_anchor: dict[float, dict[str, float | None]] = {}
@@ -630,6 +658,9 @@ def _spin_scores(
         if not len(verts) or not _has_sample(truth, t + truth.frame_interval):
             continue
         k, k1 = vertices.index_of(t, _TIME_TOL), vertices.index_of(t + truth.frame_interval, _TIME_TOL)
+        if k1 not in follow.sample_of:  # after the recording: the model is not defined there
+            continue
+        at_t, at_t1 = (follow.means[follow.sample_of.index(i)] for i in (k, k1))
         before = len(scored)
         for obj in truth.objects:
             ours = torch.unique(gauss[(verts >= obj.first_vertex) & (verts < obj.first_vertex + obj.n_vertices)])
@@ -641,7 +672,7 @@ def _spin_scores(
             size = float((x0.max(0).values - x0.min(0).values).norm())
             if float(residual) > RIGID_TOLERANCE * size or true_angle < SPIN_FLOOR_DEG:
                 continue
-            learned, _ = best_rotation(model.at(t, rows=ours).means.cpu(), model.at(t + truth.frame_interval, rows=ours).means.cpu())
+            learned, _ = best_rotation(at_t[follow.slot[ours]].cpu(), at_t1[follow.slot[ours]].cpu())
             scored.append((obj.name, true_angle, rotation_angle_deg(learned), rotation_angle_deg(learned @ true_rotation.T)))
         if len(scored) > before:
             view = scored[before:]

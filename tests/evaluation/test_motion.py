@@ -23,6 +23,7 @@ from pidg.evaluation.motion import (
     RADIUS_FRACTION,
     SEEN_MIN_WEIGHT,
     SPIN_FLOOR_DEG,
+    _follow_matches,
     _spin_scores,
     _tracking_text,
     best_rotation,
@@ -644,11 +645,13 @@ def ring_model(ring: Tensor, deformation: DeformationModel) -> DynamicGaussians:
     return DynamicGaussians(gaussians, deformation, None, TimeAxis(S, 1.0 / S), torch.zeros(3), backend="cpu")
 
 
-def ring_matches(model: DynamicGaussians, truth, t: float = 0.25):
-    """Each vertex at t matched to the Gaussian at the same place (as the 3D velocity's matching does)."""
+def ring_spin(model: DynamicGaussians, truth, t: float = 0.25):
+    """The spin scores with each vertex at t matched to the Gaussian at the same place (as the 3D velocity's matching
+    does), followed as :func:`evaluate_motion` follows them."""
     points = torch.from_numpy(truth.vertices.positions[truth.vertices.index_of(t)])
-    gauss = torch.cdist(points, model.at(t).means).argmin(dim=1)
-    return {t: (torch.arange(len(points)), gauss, torch.ones(len(points), dtype=torch.bool))}
+    gauss = torch.cdist(points, model.at(t).means.detach()).argmin(dim=1)
+    matches = {t: (torch.arange(len(points)), gauss, torch.ones(len(points), dtype=torch.bool))}
+    return _spin_scores(truth, matches, _follow_matches(model, truth, matches))
 
 
 def test_spin_is_zero_error_for_gaussians_that_turn_with_the_body_and_the_whole_angle_for_a_translation(tmp_path):
@@ -656,19 +659,19 @@ def test_spin_is_zero_error_for_gaussians_that_turn_with_the_body_and_the_whole_
     truth, ring, centre = spinning_truth(tmp_path / "motion_gt", rate)
     carried = ring_model(Spin(centre, rate).deform(ring, torch.zeros(12, 4), torch.zeros(12, 3), torch.zeros(12)).means,
                          Spin(centre, rate))
-    spin, per_anchor = _spin_scores(carried, truth, ring_matches(carried, truth))
+    spin, per_anchor = ring_spin(carried, truth)
     assert spin.intervals == 1 and spin.true_deg == pytest.approx(rate * DT, abs=1e-3)
     assert spin.learned_deg == pytest.approx(rate * DT, abs=1e-3) and spin.error_deg == pytest.approx(0.0, abs=1e-3)
     assert spin.relative == pytest.approx(0.0, abs=1e-4) and spin.per_object == {"ring": pytest.approx(0.0, abs=1e-4)}
     assert per_anchor[0.25]["spin_true_deg"] == pytest.approx(rate * DT, abs=1e-3)
     # Gaussians that follow the body's centre but do not turn: the error is the whole true angle, relative 1
     translated = ring_model(ring, Translation(torch.zeros(3)))
-    spin, _ = _spin_scores(translated, truth, ring_matches(translated, truth))
+    spin, _ = ring_spin(translated, truth)
     assert spin.learned_deg == pytest.approx(0.0, abs=1e-4) and spin.error_deg == pytest.approx(rate * DT, abs=1e-3)
     assert spin.relative == pytest.approx(1.0, abs=1e-4)
     # turning the other way: twice the angle
     backwards = ring_model(ring, Spin(centre, -rate))
-    spin, _ = _spin_scores(backwards, truth, ring_matches(backwards, truth))
+    spin, _ = ring_spin(backwards, truth)
     assert spin.error_deg == pytest.approx(2 * rate * DT, abs=1e-3) and spin.relative == pytest.approx(2.0, abs=1e-3)
 
 
@@ -676,7 +679,7 @@ def test_spin_leaves_out_bodies_that_barely_turn_or_are_not_rigid(tmp_path):
     slow = SPIN_FLOOR_DEG / DT / 2  # half a floor over one interval
     truth, ring, _ = spinning_truth(tmp_path / "slow", slow)
     model = ring_model(ring, Translation(torch.zeros(3)))
-    assert _spin_scores(model, truth, ring_matches(model, truth)) == (None, {})
+    assert ring_spin(model, truth) == (None, {})
     truth, ring, _ = spinning_truth(tmp_path / "stretching", 80.0, stretch=0.5)  # turns 10 degrees and grows 6 %
     model = ring_model(ring, Translation(torch.zeros(3)))
-    assert _spin_scores(model, truth, ring_matches(model, truth)) == (None, {})
+    assert ring_spin(model, truth) == (None, {})
