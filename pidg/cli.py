@@ -13,6 +13,7 @@ from typing import NoReturn, get_args
 from pidg.bench.cmr import VARIANTS as CMR_BENCH_VARIANTS
 from pidg.bench.cmr import CMRBenchConfig, run_cmr_bench
 from pidg.bench.executors import ExecutorName, make_executor
+from pidg.bench.motion_fit import MotionFitConfig, run_motion_fit
 from pidg.bench.quality import run_quality_bench
 from pidg.bench.suite import SUITES, discover_scenes, run_suite, suite_config
 from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_bench
@@ -214,6 +215,12 @@ def _cmd_bench_step(args: argparse.Namespace) -> int:
 
 def _cmd_bench_views(args: argparse.Namespace) -> int:
     run_views_bench(Path(args.run), every=args.every, device=args.device)
+    return 0
+
+
+def _cmd_bench_motion_fit(args: argparse.Namespace) -> int:
+    config = MotionFitConfig(steps=args.steps, surface_points=args.points, static_points=args.static_points, seed=args.seed)
+    run_motion_fit(Path(args.run), config, Path(args.out) if args.out else None)
     return 0
 
 
@@ -431,6 +438,16 @@ def build_parser() -> argparse.ArgumentParser:
     step.add_argument("--from-run", default=None, help="start from this run's trained Gaussians (its checkpoint) instead of a random init")
     _add_run_options(step, "SCENE ")
     step.set_defaults(func=_cmd_bench_step)
+
+    fit = bench_sub.add_parser("motion-fit", help="a generated scene's run: can its deformation field represent the true "
+                               "motion? (a fresh field fitted to the true 3D trajectories, beside the trained one)")
+    fit.add_argument("run", help="a run folder trained on a scene from `pidg make-scene`")
+    fit.add_argument("--steps", type=int, default=MotionFitConfig.steps, help="fitting steps (default: the run's optim.iterations)")
+    fit.add_argument("--points", type=int, default=MotionFitConfig.surface_points, help="points sampled on the moving surfaces")
+    fit.add_argument("--static-points", type=int, default=MotionFitConfig.static_points, help="still points held in place")
+    fit.add_argument("--seed", type=int, default=MotionFitConfig.seed, help="seed of the sampling and of the fit")
+    fit.add_argument("--out", default="outputs/bench/motion_fit.json", help="JSON with all figures ('' for none)")
+    fit.set_defaults(func=_cmd_bench_motion_fit)
 
     cmr = bench_sub.add_parser("cmr", help="CMR loss cost: time per sample size, peak memory at 20k vs 200k particles")
     cmr.add_argument("--samples", type=int, nargs="+", default=list(CMRBenchConfig.samples), help="sample sizes M")

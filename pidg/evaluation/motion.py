@@ -644,6 +644,18 @@ def rotation_angle_deg(rotation: Tensor) -> float:
     return float(torch.rad2deg(torch.arccos(cos)))
 
 
+def rigid_turn(x0: Tensor, x1: Tensor) -> tuple[Tensor, float] | None:
+    """The true rotation [3, 3] (float64) and its angle (degrees) of an object whose vertices go from ``x0`` to ``x1``
+    [V, 3], when it moves rigidly (best rigid fit's RMS residual at most :data:`RIGID_TOLERANCE` of its bounding
+    box's diagonal) and turns at least :data:`SPIN_FLOOR_DEG`; None when it is not scored for spin."""
+    rotation, residual = best_rotation(x0, x1)
+    angle = rotation_angle_deg(rotation)
+    size = float((x0.max(0).values - x0.min(0).values).norm())
+    if float(residual) > RIGID_TOLERANCE * size or angle < SPIN_FLOOR_DEG:
+        return None
+    return rotation, angle
+
+
 def _spin_scores(
     truth: MotionGroundTruth, matches: dict[float, tuple[Tensor, Tensor, Tensor]], follow: FollowedGaussians | None
 ) -> tuple[SpinScores | None, dict[float, dict[str, float | None]]]:
@@ -667,11 +679,10 @@ def _spin_scores(
             if len(ours) < 3:
                 continue
             x0, x1 = (torch.from_numpy(vertices.positions[i, obj.first_vertex : obj.first_vertex + obj.n_vertices]) for i in (k, k1))
-            true_rotation, residual = best_rotation(x0, x1)
-            true_angle = rotation_angle_deg(true_rotation)
-            size = float((x0.max(0).values - x0.min(0).values).norm())
-            if float(residual) > RIGID_TOLERANCE * size or true_angle < SPIN_FLOOR_DEG:
+            turn = rigid_turn(x0, x1)
+            if turn is None:
                 continue
+            true_rotation, true_angle = turn
             learned, _ = best_rotation(at_t[follow.slot[ours]].cpu(), at_t1[follow.slot[ours]].cpu())
             scored.append((obj.name, true_angle, rotation_angle_deg(learned), rotation_angle_deg(learned @ true_rotation.T)))
         if len(scored) > before:

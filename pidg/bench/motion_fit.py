@@ -1,0 +1,297 @@
+"""``pidg bench motion-fit RUN``: can the run's deformation field represent the scene's true motion at all?
+
+A learned motion can be wrong because the field cannot express the truth (capacity: resolution, table size, width,
+the time axis) or because training through images does not lead it there (the optimisation's path, the supervision).
+This bench separates the two on a scene from ``pidg make-scene``: a fresh field of the run's own configuration (its
+bounds, learning rates, their decay and, by default, its number of steps) is fitted *directly* to the true 3D
+trajectories, with no image in the loop, and scored beside the run's trained field on the same points:
+
+* the points: ``surface_points`` samples on the dynamic objects' surfaces at the first ground-truth time (area-
+  weighted, carried by their triangle's vertices at every sample: exact for the generators' meshes; a truth of
+  points without triangles, as the embedded demo scene's, gives its vertices), plus up to
+  ``static_points`` of the run's canonical Gaussians that stay farther than twice the motion radius from every true
+  vertex and surface sample at every time (the truth says nothing moves there; they keep the fit from moving the whole box);
+* the fit: each step one ground-truth sample time, every point deformed from its first-time position, L1 of the
+  position error (world units) plus the field's own regulariser, Adam with the trainer's betas, eps and rates
+  (``optim.deformation_lr``, ``x optim.grid_lr_factor`` for hash grids), decayed x0.1 over the steps as training does;
+* the scores (:class:`FieldScores`), for the fitted and for the trained field deforming the same first-time points:
+  the mean position error over every sample and surface point (world units) and as a share of the mean distance
+  travelled from the first time; the frame-to-frame step error as a share of the true step (pooled over the
+  intervals between consecutive samples: what a flow sees); and the spin of every object over the intervals in which
+  it moves rigidly and turns (:func:`pidg.evaluation.motion.rigid_turn`), as ``pidg eval --motion-gt`` defines it
+  (degrees per sample interval; relative 0 = right, 1 = not turning), here on the surface points rather than on
+  matched Gaussians.
+
+The trained field's scores on these points say how the run moves the *first-time surfaces*, which a relay of
+Gaussians (docs/motion.md, "The bodies' spin") leaves behind; the run's rendered motion is scored by
+``pidg eval --motion-gt``. A fitted field near 0 where the trained one is near 1 says the limit is not capacity.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pidg.config_tools import load_config
+from pidg.data.motion_gt import MotionGroundTruth, read_motion_gt
+from pidg.evaluation.motion import best_rotation, default_radius, nearest_gaussians, rigid_turn, rotation_angle_deg
+from pidg.export.run_model import check_run_folder
+from pidg.models.deformation import GROUP_GRID, GROUP_MLP, DeformationConfig, DeformationModel, build_deformation
+from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.training.config import TrainConfig
+from pidg.training.optim import BETAS, EPS
+
+
+@dataclass(frozen=True)
+class MotionFitConfig:
+    """Settings of ``pidg bench motion-fit``."""
+
+    steps: int | None = None
+    """Fitting steps (None: the run's ``optim.iterations``, the budget its field had)."""
+    surface_points: int = 4000
+    """Points sampled on the dynamic objects' surfaces at the first ground-truth time."""
+    static_points: int = 4000
+    """At most this many of the run's canonical Gaussians far from every moving vertex, held still by the fit."""
+    seed: int = 0
+    """Seed of the sampling and of the fit's choice of times."""
+
+    def __post_init__(self) -> None:
+        if self.steps is not None and self.steps < 0:
+            raise ValueError(f"motion-fit: --steps must be >= 0, got {self.steps}")
+        if self.surface_points < 3:
+            raise ValueError(f"motion-fit: --points must be >= 3 (a rotation needs three points), got {self.surface_points}")
+        if self.static_points < 0:
+            raise ValueError(f"motion-fit: --static-points must be >= 0, got {self.static_points}")
+
+
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """Points on the dynamic surfaces, carried through the recording."""
+
+    trajectories: Tensor  # [T, P, 3] world units, at the ground truth's sample times
+    owner: Tensor  # [P] index of the object (``MotionGroundTruth.objects``) each point lies on
+    times: Tensor  # [T] dataset time
+
+
+@dataclass(frozen=True)
+class FieldScores:
+    """How well a field moves the first-time surface points (module docstring); world units, degrees."""
+
+    position_error: float  # mean |x_field(t) - x_true(t)| over samples and points, world units
+    position_relative: float | None  # that error / the mean true distance from the first time (0 right, 1 = still)
+    step_relative: float | None  # sum |step_field - step_true| / sum |step_true| over consecutive samples
+    spin_true_deg: float | None  # mean true turn of the scored (interval, rigid object) pairs, degrees per interval
+    spin_learned_deg: float | None  # the field's mean turn of the same
+    spin_relative: float | None  # pooled angle of R_field R_true^T / pooled true angle (0 right, 1 = not turning)
+    spin_intervals: int = 0
+    per_object: dict[str, float] = field(default_factory=dict)  # position error per object, world units
+
+
+@dataclass(frozen=True)
+class MotionFitResult:
+    run: str
+    steps: int
+    seconds: float  # wall time of the fit
+    surface_points: int
+    static_points: int
+    fitted: FieldScores
+    trained: FieldScores
+
+
+def surface_samples(truth: MotionGroundTruth, count: int, generator: torch.Generator) -> SurfaceSamples:
+    """``count`` points on the dynamic meshes at the first sample (area-weighted triangles, uniform barycentric
+    weights), carried by their triangle's vertices at every sample time. A ground truth without triangles (points
+    only, as the embedded procedural scene's) gives up to ``count`` of its vertices themselves."""
+    v = truth.vertices
+    faces = torch.from_numpy(v.faces).long()
+    positions = torch.from_numpy(v.positions).double()  # [T, V, 3]
+    if faces.numel() == 0:
+        rows = torch.randperm(positions.shape[1], generator=generator)[:count].sort().values
+        faces = torch.stack([rows, rows, rows], dim=1)  # degenerate triangles: the vertices themselves
+        chosen = torch.arange(len(rows))
+        weights = torch.full((len(rows), 3), 1.0 / 3.0, dtype=torch.float64)
+        return _carried(truth, positions, faces, chosen, weights)
+    corners = positions[0][faces]  # [F, 3, 3]
+    area = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).norm(dim=1)
+    chosen = torch.multinomial(area.float(), count, replacement=True, generator=generator)
+    uv = torch.rand(count, 2, generator=generator, dtype=torch.float64)
+    flip = uv.sum(1) > 1
+    uv[flip] = 1 - uv[flip]
+    weights = torch.stack([1 - uv.sum(1), uv[:, 0], uv[:, 1]], dim=1)  # [P, 3]
+    return _carried(truth, positions, faces, chosen, weights)
+
+
+def _carried(truth: MotionGroundTruth, positions: Tensor, faces: Tensor, chosen: Tensor, weights: Tensor) -> SurfaceSamples:
+    """Samples on the triangles ``faces[chosen]`` with barycentric ``weights`` [P, 3], through every sample time."""
+    trajectories = (positions[:, faces[chosen]] * weights[None, :, :, None]).sum(2).float()
+    first = faces[chosen, 0]
+    owner = torch.full((len(chosen),), -1, dtype=torch.long)
+    for j, obj in enumerate(truth.objects):
+        owner[(first >= obj.first_vertex) & (first < obj.first_vertex + obj.n_vertices)] = j
+    return SurfaceSamples(trajectories, owner, torch.from_numpy(truth.vertices.times).float())
+
+
+def static_anchors(means: Tensor, moving: Tensor, radius: float, count: int, generator: torch.Generator) -> Tensor:
+    """Up to ``count`` of ``means`` [N, 3] farther than ``radius`` from every moving point ``moving`` [T, M, 3] (the
+    true vertices and the surface samples) at every sample time: places the truth keeps still."""
+    clear = torch.ones(len(means), dtype=torch.bool)
+    for positions in moving:
+        _, distance = nearest_gaussians(means, positions.to(means.dtype))
+        clear &= distance > radius
+    candidates = means[clear]
+    pick = torch.randperm(len(candidates), generator=generator)[:count]
+    return candidates[pick]
+
+
+def fresh_field(run_field: DeformationModel) -> DeformationModel:
+    """A new field of ``run_field``'s kind and configuration, normalising positions with the same box; ValueError for a
+    field with nothing to fit (the identity of the w/o-deformation ablation)."""
+    if not isinstance(getattr(run_field, "normalize", None), torch.nn.Module) or not run_field.parameter_groups():
+        raise ValueError(f"the run's deformation ({type(run_field).__name__}) has nothing to fit: `pidg bench motion-fit` "
+                         "needs a run with a deformation field (grid4d or mlp)")
+    new = build_deformation(DeformationConfig.of(run_field))
+    new.normalize.load_state_dict(run_field.normalize.state_dict())
+    return new
+
+
+def _identity_rows(n: int) -> tuple[Tensor, Tensor]:
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1.0
+    return quats, torch.zeros(n, 3)
+
+
+def fit_field(
+    model: DeformationModel, start: Tensor, targets: Tensor, times: Tensor, steps: int, lr: float, grid_lr_factor: float,
+    generator: torch.Generator,
+) -> float:
+    """Fit ``model`` so that it carries ``start`` [P, 3] to ``targets`` [T, P, 3] at ``times`` [T] (module docstring);
+    returns the last step's loss."""
+    lrs = {GROUP_GRID: lr * grid_lr_factor, GROUP_MLP: lr}
+    groups = [{"params": params, "lr": lrs[name], "base_lr": lrs[name]}
+              for name, params in model.parameter_groups().items() if params and name in lrs]
+    optimizer = torch.optim.Adam(groups, betas=BETAS, eps=EPS)
+    quats, log_scales = _identity_rows(len(start))
+    loss = torch.zeros(())
+    model.train()
+    for step in range(steps):
+        k = int(torch.randint(len(times), (1,), generator=generator))
+        out = model.deform(start, quats, log_scales, times[k].expand(len(start)), regularize=True)
+        loss = (out.means - targets[k]).abs().mean()
+        if out.regularization is not None:
+            loss = loss + out.regularization
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        for group in optimizer.param_groups:  # the trainer's decay of the fields: x0.1 over the run
+            group["lr"] = group["base_lr"] * 0.1 ** (step / max(steps, 1))
+        optimizer.step()
+    return float(loss.detach())
+
+
+@torch.no_grad()
+def carried_points(model: DeformationModel, start: Tensor, times: Tensor) -> Tensor:
+    """``start`` [P, 3] deformed by ``model`` to every time of ``times`` [T]: [T, P, 3]."""
+    quats, log_scales = _identity_rows(len(start))
+    return torch.stack([model.deform(start, quats, log_scales, t.expand(len(start))).means for t in times])
+
+
+def score_field(carried: Tensor, samples: SurfaceSamples, truth: MotionGroundTruth) -> FieldScores:
+    """Scores (module docstring) of the field's trajectories ``carried`` [T, P, 3] against the samples'."""
+    true = samples.trajectories.double()
+    ours = carried.double()
+    error = (ours - true).norm(dim=2)  # [T, P]
+    travel = (true - true[0]).norm(dim=2)
+    true_step = (true[1:] - true[:-1]).norm(dim=2)
+    step_error = ((ours[1:] - ours[:-1]) - (true[1:] - true[:-1])).norm(dim=2)
+    spins: list[tuple[float, float, float]] = []  # true, learned, error angles
+    per_object: dict[str, float] = {}
+    for j, obj in enumerate(truth.objects):
+        rows = samples.owner == j
+        if not bool(rows.any()):
+            continue
+        per_object[obj.name] = float(error[:, rows].mean())
+        if int(rows.sum()) < 3:
+            continue
+        vertices = torch.from_numpy(truth.vertices.positions[:, obj.first_vertex : obj.first_vertex + obj.n_vertices])
+        for k in range(len(true) - 1):
+            turn = rigid_turn(vertices[k], vertices[k + 1])
+            if turn is None:
+                continue
+            rotation, angle = turn
+            learned, _ = best_rotation(ours[k, rows], ours[k + 1, rows])
+            spins.append((angle, rotation_angle_deg(learned), rotation_angle_deg(learned @ rotation.T)))
+    true_total = sum(s[0] for s in spins)
+    return FieldScores(
+        position_error=float(error.mean()),
+        position_relative=_share(float(error.sum()), float(travel.sum())),
+        step_relative=_share(float(step_error.sum()), float(true_step.sum())),
+        spin_true_deg=true_total / len(spins) if spins else None,
+        spin_learned_deg=sum(s[1] for s in spins) / len(spins) if spins else None,
+        spin_relative=_share(sum(s[2] for s in spins), true_total) if spins else None,
+        spin_intervals=len(spins),
+        per_object=per_object,
+    )
+
+
+def _share(part: float, whole: float) -> float | None:
+    return part / whole if whole > 0 and math.isfinite(whole) else None
+
+
+def run_motion_fit(run_dir: Path, config: MotionFitConfig, out: Path | None = None) -> MotionFitResult:
+    """Fit a fresh field of the run's configuration to its scene's true motion, score it beside the run's own field,
+    print a table and write ``out`` (JSON) when given."""
+    run_dir = check_run_folder(run_dir)
+    train_config = load_config(TrainConfig, run_dir / "config.json")
+    truth = read_motion_gt(Path(train_config.data.path))  # DatasetError naming the missing file (the run's data.path)
+    model = DynamicGaussians.from_run(run_dir, "cpu")
+    trained = model.deformation
+    trained.eval()
+    generator = torch.Generator().manual_seed(config.seed)
+    samples = surface_samples(truth, config.surface_points, generator)
+    moving = torch.cat([torch.from_numpy(truth.vertices.positions).float(), samples.trajectories], dim=1)
+    anchors = static_anchors(model.gaussians.params["means"].detach().float(), moving, 2.0 * default_radius(truth),
+                             config.static_points, generator)
+    start = torch.cat([samples.trajectories[0], anchors])
+    targets = torch.cat([samples.trajectories, anchors.expand(len(samples.times), -1, -1)], dim=1)
+    steps = config.steps if config.steps is not None else train_config.optim.iterations
+    fitted = fresh_field(trained)
+    began = time.perf_counter()
+    fit_field(fitted, start, targets, samples.times, steps, train_config.optim.deformation_lr,
+              train_config.optim.grid_lr_factor, generator)
+    seconds = time.perf_counter() - began
+    fitted.eval()
+    surface = samples.trajectories[0]
+    result = MotionFitResult(
+        run=str(run_dir), steps=steps, seconds=seconds, surface_points=len(surface), static_points=len(anchors),
+        fitted=score_field(carried_points(fitted, surface, samples.times), samples, truth),
+        trained=score_field(carried_points(trained, surface, samples.times), samples, truth),
+    )
+    print(format_result(result))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(asdict(result), indent=2))
+        print(f"-> {out}")
+    return result
+
+
+def format_result(result: MotionFitResult) -> str:
+    """The result as a small table (world units; spin in degrees per ground-truth sample interval)."""
+    def num(x: float | None, digits: int = 3) -> str:
+        return "-" if x is None else f"{x:.{digits}f}"
+
+    lines = [
+        f"motion-fit {result.run}: a fresh field fitted to the true 3D motion in {result.steps} steps "
+        f"({result.seconds:.0f} s; {result.surface_points} surface points, {result.static_points} still ones)",
+        f"{'field':<8} {'pos err':>8} {'pos rel':>8} {'step rel':>9} {'spin rel':>9} {'turn':>14}",
+    ]
+    for name, s in (("fitted", result.fitted), ("trained", result.trained)):
+        turn = "-" if s.spin_true_deg is None else f"{s.spin_learned_deg:.1f}/{s.spin_true_deg:.1f} deg"
+        lines.append(f"{name:<8} {num(s.position_error):>8} {num(s.position_relative):>8} {num(s.step_relative):>9} "
+                     f"{num(s.spin_relative):>9} {turn:>14}")
+    lines.append("(pos err in world units; rel: share of the truth's travel, step and turn; 0 = right, 1 = no motion)")
+    return "\n".join(lines)
