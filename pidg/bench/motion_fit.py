@@ -34,7 +34,6 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -57,7 +56,7 @@ class MotionFitConfig:
     surface_points: int = 4000
     """Points sampled on the dynamic objects' surfaces at the first ground-truth time."""
     static_points: int = 4000
-    """At most this many of the run's canonical Gaussians far from every moving vertex, held still by the fit."""
+    """At most this many of the run's canonical Gaussians far from every moving point, held still by the fit."""
     seed: int = 0
     """Seed of the sampling and of the fit's choice of times."""
 

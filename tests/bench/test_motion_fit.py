@@ -11,7 +11,6 @@ import torch
 
 from pidg.bench.motion_fit import (
     MotionFitConfig,
-    SurfaceSamples,
     carried_points,
     fit_field,
     fresh_field,
