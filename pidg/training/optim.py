@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from torch.autograd.graph import increment_version
 
 from pidg.models.deformation import GROUP_GRID, GROUP_MLP
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -76,11 +77,22 @@ def adam(param_groups: list[dict], **kwargs) -> torch.optim.Adam:
     """Adam, fused into one kernel per step when every parameter is a float32 CPU or CUDA tensor.
 
     The unfused CPU Adam runs ~10 tensor ops per parameter; on the Grid4D hash tables (~8M entries) that was
-    30 ms per step against 6 ms fused (measured on 2 cores). The update is the same algorithm.
+    30 ms per step against 6 ms fused (measured on 2 cores). The update is the same algorithm. The fused kernel
+    writes the parameters without bumping their version counters (torch 2.13, CPU), so each step bumps them, as
+    torch's own in-place update would: autograd's in-place checks and caches keyed by a parameter's version (Grid4D's
+    attention) then see the change.
     """
     params = [p for group in param_groups for p in group["params"]]
     fused = bool(params) and all(p.dtype == torch.float32 and p.device.type in ("cpu", "cuda") for p in params)
-    return torch.optim.Adam(param_groups, fused=fused, **kwargs)
+    optimizer = torch.optim.Adam(param_groups, fused=fused, **kwargs)
+    if fused:
+        optimizer.register_step_post_hook(_mark_updated)
+    return optimizer
+
+
+def _mark_updated(optimizer: torch.optim.Optimizer, args: tuple, kwargs: dict) -> None:
+    """Bump the version of every parameter of ``optimizer`` after its step (see :func:`adam`)."""
+    increment_version([p for group in optimizer.param_groups for p in group["params"]])
 
 
 def make_gaussian_optimizers(

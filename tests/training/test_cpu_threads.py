@@ -87,3 +87,33 @@ def test_adams_first_moment_of_a_zero_gradient_sticks_in_the_denormal_range_unle
         assert torch.isfinite(weight).all()
     finally:
         torch.set_flush_denormal(False)
+
+
+def test_a_fused_adam_step_is_counted_in_the_parameters_versions_and_grid4d_renders_the_update():
+    """The fused CPU kernel writes the parameters without bumping their versions; `adam` bumps them per step, so a
+    cache keyed by versions (Grid4D's attention, reused by deformations without autograd) does not serve the
+    parameters from before the step."""
+    from pidg.models.deformation import Bounds, Grid4D, Grid4DConfig, HashGridConfig
+
+    weight = torch.nn.Parameter(torch.ones(4))
+    optimizer = adam([{"params": [weight], "lr": 1e-3}], betas=(0.9, 0.999), eps=1e-15)
+    assert optimizer.defaults["fused"]
+    for step in (1, 2):
+        weight.grad = torch.ones(4)
+        optimizer.step()
+        assert weight._version == step
+    field = Grid4D(Grid4DConfig(spatial_grid=HashGridConfig(4, 2, 12, 4, 64), temporal_grid=HashGridConfig(4, 2, 12, 4, 16),
+                                width=16), Bounds.from_aabb((-1, -1, -1), (1, 1, 1)))
+    torch.nn.init.normal_(field.head_warp.weight, std=0.1)  # heads that move the points, so the attention shows
+    points, quats, scales, times = torch.rand(64, 3) - 0.5, torch.tensor([[1.0, 0, 0, 0]]).repeat(64, 1), torch.zeros(64, 3), torch.full((64,), 0.5)
+    optimizer = adam([{"params": list(field.parameters()), "lr": 1e-2}], betas=(0.9, 0.999), eps=1e-15)
+    with torch.no_grad():
+        before = field.deform(points, quats, scales, times).means  # fills the attention cache
+    field.deform(points, quats, scales, times).means.square().sum().backward()
+    optimizer.step()
+    with torch.no_grad():
+        cached = field.deform(points, quats, scales, times).means
+        field._attention_cache = None
+        fresh = field.deform(points, quats, scales, times).means
+    assert not torch.equal(before, fresh)
+    assert torch.equal(cached, fresh)
