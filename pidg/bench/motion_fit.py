@@ -12,8 +12,8 @@ trajectories, with no image in the loop, and scored beside the run's trained fie
   ``static_points`` of the run's canonical Gaussians that stay farther than twice the motion radius from every true
   vertex and surface sample at every time (the truth says nothing moves there; they keep the fit from moving the whole box);
 * the fit: each step one ground-truth sample time, every point deformed from its first-time position, L1 of the
-  position error (world units) plus the field's own regulariser, Adam with the trainer's betas, eps and rates
-  (``optim.deformation_lr``, ``x optim.grid_lr_factor`` for hash grids), decayed x0.1 over the steps as training does;
+  position error (world units) plus the field's own regulariser, with the trainer's own optimizer of the field
+  (:func:`pidg.training.optim.deformation_optimizer`: its rates and their decay, over the fit's steps);
 * the scores (:class:`FieldScores`), for the fitted and for the trained field deforming the same first-time points:
   the mean position error over every sample and surface point (world units) and as a share of the mean distance
   travelled from the first time; the frame-to-frame step error as a share of the true step (pooled over the
@@ -29,9 +29,8 @@ Gaussians (docs/motion.md, "The bodies' spin") leaves behind; the run's rendered
 from __future__ import annotations
 
 import json
-import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -39,12 +38,19 @@ from torch import Tensor
 
 from pidg.config_tools import load_config
 from pidg.data.motion_gt import MotionGroundTruth, read_motion_gt
-from pidg.evaluation.motion import best_rotation, default_radius, nearest_gaussians, rigid_turn, rotation_angle_deg
+from pidg.evaluation.motion import (
+    best_rotation,
+    default_radius,
+    nearest_gaussians,
+    ratio_or_none,
+    rigid_turn,
+    rotation_angle_deg,
+)
 from pidg.export.run_model import check_run_folder
-from pidg.models.deformation import GROUP_GRID, GROUP_MLP, DeformationConfig, DeformationModel, build_deformation
+from pidg.models.deformation import DeformationConfig, DeformationModel, build_deformation
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.training.config import TrainConfig
-from pidg.training.optim import BETAS, EPS
+from pidg.training.optim import ScheduledOptimizer, deformation_optimizer
 
 
 @dataclass(frozen=True)
@@ -166,15 +172,12 @@ def _identity_rows(n: int) -> tuple[Tensor, Tensor]:
 
 
 def fit_field(
-    model: DeformationModel, start: Tensor, targets: Tensor, times: Tensor, steps: int, lr: float, grid_lr_factor: float,
+    model: DeformationModel, start: Tensor, targets: Tensor, times: Tensor, optimizer: ScheduledOptimizer, steps: int,
     generator: torch.Generator,
 ) -> float:
-    """Fit ``model`` so that it carries ``start`` [P, 3] to ``targets`` [T, P, 3] at ``times`` [T] (module docstring);
-    returns the last step's loss."""
-    lrs = {GROUP_GRID: lr * grid_lr_factor, GROUP_MLP: lr}
-    groups = [{"params": params, "lr": lrs[name], "base_lr": lrs[name]}
-              for name, params in model.parameter_groups().items() if params and name in lrs]
-    optimizer = torch.optim.Adam(groups, betas=BETAS, eps=EPS)
+    """Fit ``model`` with ``optimizer`` (:func:`pidg.training.optim.deformation_optimizer`) so that it carries
+    ``start`` [P, 3] to ``targets`` [T, P, 3] at ``times`` [T] in ``steps`` steps (module docstring); returns the last
+    step's loss."""
     quats, log_scales = _identity_rows(len(start))
     loss = torch.zeros(())
     model.train()
@@ -184,12 +187,16 @@ def fit_field(
         loss = (out.means - targets[k]).abs().mean()
         if out.regularization is not None:
             loss = loss + out.regularization
-        optimizer.zero_grad(set_to_none=True)
+        optimizer.zero_grad()
         loss.backward()
-        for group in optimizer.param_groups:  # the trainer's decay of the fields: x0.1 over the run
-            group["lr"] = group["base_lr"] * 0.1 ** (step / max(steps, 1))
-        optimizer.step()
+        optimizer.step(step)
     return float(loss.detach())
+
+
+def fit_config(train_config: TrainConfig, steps: int) -> TrainConfig:
+    """The run's config for a fit of ``steps`` steps: its rates and decay over that length, no static warm-up (a
+    direct fit has no Gaussians to settle first)."""
+    return replace(train_config, optim=replace(train_config.optim, iterations=steps, static_warmup=0))
 
 
 @torch.no_grad()
@@ -227,18 +234,14 @@ def score_field(carried: Tensor, samples: SurfaceSamples, truth: MotionGroundTru
     true_total = sum(s[0] for s in spins)
     return FieldScores(
         position_error=float(error.mean()),
-        position_relative=_share(float(error.sum()), float(travel.sum())),
-        step_relative=_share(float(step_error.sum()), float(true_step.sum())),
-        spin_true_deg=true_total / len(spins) if spins else None,
-        spin_learned_deg=sum(s[1] for s in spins) / len(spins) if spins else None,
-        spin_relative=_share(sum(s[2] for s in spins), true_total) if spins else None,
+        position_relative=ratio_or_none(float(error.sum()), float(travel.sum())),
+        step_relative=ratio_or_none(float(step_error.sum()), float(true_step.sum())),
+        spin_true_deg=ratio_or_none(true_total, len(spins)),
+        spin_learned_deg=ratio_or_none(sum(s[1] for s in spins), len(spins)),
+        spin_relative=ratio_or_none(sum(s[2] for s in spins), true_total),
         spin_intervals=len(spins),
         per_object=per_object,
     )
-
-
-def _share(part: float, whole: float) -> float | None:
-    return part / whole if whole > 0 and math.isfinite(whole) else None
 
 
 def run_motion_fit(run_dir: Path, config: MotionFitConfig, out: Path | None = None) -> MotionFitResult:
@@ -260,8 +263,8 @@ def run_motion_fit(run_dir: Path, config: MotionFitConfig, out: Path | None = No
     steps = config.steps if config.steps is not None else train_config.optim.iterations
     fitted = fresh_field(trained)
     began = time.perf_counter()
-    fit_field(fitted, start, targets, samples.times, steps, train_config.optim.deformation_lr,
-              train_config.optim.grid_lr_factor, generator)
+    optimizer = deformation_optimizer(fitted, fit_config(train_config, steps), scene_extent=1.0)  # extent: positions' rate only
+    fit_field(fitted, start, targets, samples.times, optimizer, steps, generator)
     seconds = time.perf_counter() - began
     fitted.eval()
     surface = samples.trajectories[0]

@@ -312,7 +312,7 @@ def _pct(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.1f}%"
 
 
-def _ratio(total: float, count: float) -> float | None:
+def ratio_or_none(total: float, count: float) -> float | None:
     """total / count, or None where nothing was counted (a mean over no pixels, samples or vertices)."""
     return total / count if count else None
 
@@ -407,13 +407,13 @@ def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: Flow
             sums[key] += value
         m = pair_sums["pixels"]
         per_pair.append({"frame": pair.frame0.name, "time": pair.frame0.time, "pixels": int(m),
-                         "target_epe": _ratio(pair_sums["error"], m), "zero_motion_epe": _ratio(pair_sums["zero"], m)})
+                         "target_epe": ratio_or_none(pair_sums["error"], m), "zero_motion_epe": ratio_or_none(pair_sums["zero"], m)})
     n = sums["pixels"]
     return TargetScores(
         pairs=len(per_pair), pixels=int(n), depth=depth,
-        target_epe=_ratio(sums["error"], n), zero_motion_epe=_ratio(sums["zero"], n),
-        coverage=_ratio(n, sums["dynamic"]), off_dynamic_pixels=int(sums["off_pixels"]),
-        off_dynamic_flow=_ratio(sums["off_flow"], sums["off_pixels"]), skipped=skipped, per_pair=per_pair,
+        target_epe=ratio_or_none(sums["error"], n), zero_motion_epe=ratio_or_none(sums["zero"], n),
+        coverage=ratio_or_none(n, sums["dynamic"]), off_dynamic_pixels=int(sums["off_pixels"]),
+        off_dynamic_flow=ratio_or_none(sums["off_flow"], sums["off_pixels"]), skipped=skipped, per_pair=per_pair,
     )
 
 
@@ -616,10 +616,10 @@ def _tracking_scores(
         samples, matched = samples + error.numel(), matched + len(verts)
         per_anchor[t_a] = {"track_error": float(error.mean()), "track_travel": float(travel.mean())}
     scores = TrackingScores(
-        anchors=len(matches), samples=samples, coverage=_ratio(matched, n_vertices),
-        error=_ratio(error_sum, samples), travel=_ratio(travel_sum, samples), relative=_ratio(error_sum, travel_sum),
-        per_object={obj.name: _ratio(e, t) for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
-        seen_share=_ratio(seen_matches, matched), seen_relative=_ratio(seen_error, seen_travel),
+        anchors=len(matches), samples=samples, coverage=ratio_or_none(matched, n_vertices),
+        error=ratio_or_none(error_sum, samples), travel=ratio_or_none(travel_sum, samples), relative=ratio_or_none(error_sum, travel_sum),
+        per_object={obj.name: ratio_or_none(e, t) for obj, (e, t) in zip(truth.objects, object_sums.tolist())},
+        seen_share=ratio_or_none(seen_matches, matched), seen_relative=ratio_or_none(seen_error, seen_travel),
     )
     return scores, per_anchor
 
@@ -692,10 +692,10 @@ def _spin_scores(
     if not scored:
         return None, per_anchor
     true, learned, error = (sum(r[i] for r in scored) for i in (1, 2, 3))
-    per_object = {obj.name: _ratio(sum(r[3] for r in scored if r[0] == obj.name), sum(r[1] for r in scored if r[0] == obj.name))
+    per_object = {obj.name: ratio_or_none(sum(r[3] for r in scored if r[0] == obj.name), sum(r[1] for r in scored if r[0] == obj.name))
                   for obj in truth.objects if any(r[0] == obj.name for r in scored)}
     scores = SpinScores(intervals=len(scored), true_deg=true / len(scored), learned_deg=learned / len(scored),
-                        error_deg=error / len(scored), relative=_ratio(error, true), per_object=per_object)
+                        error_deg=error / len(scored), relative=ratio_or_none(error, true), per_object=per_object)
     return scores, per_anchor
 
 
@@ -804,7 +804,7 @@ def _velocity_scores(
     d_ray, f_ray, z_ray = along_across("deformation"), along_across("field"), along_across("v_gt")  # zero: error = -v_gt
     return VelocityScores(
         times=times, vertex_samples=vertex_samples, matched=matched,
-        coverage=_ratio(matched, vertex_samples), radius=radius, fd_step=h, speed_floor=floor,
+        coverage=ratio_or_none(matched, vertex_samples), radius=radius, fd_step=h, speed_floor=floor,
         relative_samples=int(counted.sum()), match_distance=_mean(cat("distance")),
         deformation_mae=d_mae, deformation_mae_per_frame=d_frame, deformation_rel=d_rel,
         field_mae=f_mae, field_mae_per_frame=f_frame, field_rel=f_rel,

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch.autograd.graph import increment_version
 
-from pidg.models.deformation import GROUP_GRID, GROUP_MLP
+from pidg.models.deformation import GROUP_GRID, GROUP_MLP, DeformationModel
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.gaussians import GaussianModel
 from pidg.models.material_field import GROUP_EMBEDDING
@@ -143,6 +143,19 @@ def reschedule(optimizers: dict[str, ScheduledOptimizer], config: TrainConfig, s
         opt.schedule = schedule_for(name, config, scene_extent)
 
 
+def deformation_optimizer(field: DeformationModel, config: TrainConfig, scene_extent: float) -> ScheduledOptimizer | None:
+    """The deformation field's optimizer in a run of ``config``: its networks at ``optim.deformation_lr``, its hash
+    grids ``grid_lr_factor`` times that, decayed as :func:`schedule_for` says, from step ``optim.static_warmup``
+    (None for a field without parameters). ``pidg bench motion-fit`` fits a fresh field with it too."""
+    o = config.optim
+    lrs = {GROUP_GRID: o.deformation_lr * o.grid_lr_factor, GROUP_MLP: o.deformation_lr}
+    groups = _groups(field.parameter_groups(), lrs, "")
+    if not groups:
+        return None
+    return ScheduledOptimizer(adam(groups, betas=BETAS, eps=EPS), schedule_for("deformation", config, scene_extent),
+                              start=o.static_warmup)
+
+
 def make_optimizers(model: DynamicGaussians, config: TrainConfig, scene_extent: float) -> dict[str, ScheduledOptimizer]:
     """All optimizers of a run: the Gaussian parameters' (keyed by parameter name), ``deformation``, and with a
     material field ``material`` and ``material_embedding``."""
@@ -151,11 +164,9 @@ def make_optimizers(model: DynamicGaussians, config: TrainConfig, scene_extent: 
         name: ScheduledOptimizer(opt, schedule_for(name, config, scene_extent))
         for name, opt in make_gaussian_optimizers(model.gaussians, g, scene_extent).items()
     }
-    lrs = {GROUP_GRID: o.deformation_lr * o.grid_lr_factor, GROUP_MLP: o.deformation_lr}
-    groups = _groups(model.deformation.parameter_groups(), lrs, "")
-    if groups:
-        out["deformation"] = ScheduledOptimizer(adam(groups, betas=BETAS, eps=EPS), schedule_for("deformation", config, scene_extent),
-                                                start=o.static_warmup)
+    deformation = deformation_optimizer(model.deformation, config, scene_extent)
+    if deformation is not None:
+        out["deformation"] = deformation
     if model.material_field is not None:
         field_groups = model.material_field.parameter_groups()
         lrs = {GROUP_GRID: o.material_lr * o.material_grid_lr_factor, GROUP_MLP: o.material_lr}

@@ -12,6 +12,7 @@ import torch
 from pidg.bench.motion_fit import (
     MotionFitConfig,
     carried_points,
+    fit_config,
     fit_field,
     fresh_field,
     score_field,
@@ -21,6 +22,8 @@ from pidg.bench.motion_fit import (
 from pidg.data.motion_gt import MotionGroundTruth, MotionObject, VertexMotion
 from pidg.models.deformation import Bounds, Grid4D, Grid4DConfig, HashGridConfig
 from pidg.models.deformation.identity import IdentityDeformation
+from pidg.training.config import TrainConfig
+from pidg.training.optim import deformation_optimizer
 
 TURN_DEG = 10.0  # the square's turn per sample interval
 
@@ -102,7 +105,8 @@ def test_a_fresh_field_fitted_to_the_trajectories_learns_the_turn():
     field = Grid4D(config, Bounds.from_points(samples.trajectories.reshape(-1, 3), margin=0.2))
     before = score_field(carried_points(field, samples.trajectories[0], samples.times), samples, truth)
     assert before.spin_relative == pytest.approx(1.0, abs=1e-3)  # the heads start at zero: no motion
-    fit_field(field, samples.trajectories[0], samples.trajectories, samples.times, 300, 2e-3, 10.0, torch.Generator().manual_seed(0))
+    optimizer = deformation_optimizer(field, fit_config(TrainConfig(), 300), scene_extent=1.0)  # rates 2e-3, grids x10
+    fit_field(field, samples.trajectories[0], samples.trajectories, samples.times, optimizer, 300, torch.Generator().manual_seed(0))
     after = score_field(carried_points(field, samples.trajectories[0], samples.times), samples, truth)
     assert after.position_relative < 0.2
     assert after.spin_relative < 0.4
