@@ -19,9 +19,15 @@ from pidg.device import Device, describe, rasterizer_for, resolve_device
 from pidg.evaluation.evaluate import evaluate_model
 from pidg.evaluation.future import evaluate_future
 from pidg.evaluation.motion import FrameFlows, MotionEvaluation, evaluate_flow_target, evaluate_motion
-from pidg.evaluation.images import colorize_scalar, save_png
+from pidg.evaluation.images import colorize_scalar, save_png, with_titles
 from pidg.evaluation.video import write_video
-from pidg.evaluation.visualize import dynamic_split_image, flow_comparison, material_field_images, truth_flow_comparison
+from pidg.evaluation.visualize import (
+    dynamic_split_image,
+    flow_comparison,
+    material_field_images,
+    truth_flow_comparison,
+    truth_flow_titles,
+)
 from pidg.flow import FlowCache, FlowConfig, open_flow_cache
 from pidg.metrics import NetName, lpips_weights_available
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -100,7 +106,9 @@ def evaluate_motion_and_save(
     out_dir = Path(run_dir) / f"eval_{split}"
 
     def save_picture(flows: FrameFlows) -> None:
-        save_png(truth_flow_comparison(flows)[0], out_dir / "motion_flow" / f"{flows.frame.name.replace('/', '_')}.png")
+        image, scale = truth_flow_comparison(flows)
+        path = out_dir / "motion_flow" / f"{flows.frame.name.replace('/', '_')}.png"
+        save_png(with_titles(image, truth_flow_titles(flows, scale)), path)
 
     evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius, velocity_integration=integration,
                                  on_frame=save_picture)
@@ -161,7 +169,8 @@ def render_model(
     for i, frame in enumerate(frames):
         out = model.render(frame.camera, frame.time)
         rgb = out.rgb.clamp(0, 1)
-        trajectory.append(torch.cat([rgb, frame.image.to(rgb.device)], dim=1))
+        side_by_side = torch.cat([rgb, frame.image.to(rgb.device)], dim=1)
+        trajectory.append(with_titles(side_by_side, [f"render, t = {frame.time:.3f}", "ground truth"]))
         depth.append(colorize_scalar(out.depth_normalized(), valid=out.alpha > 0.5))
         save_png(rgb, out_dir / "trajectory" / f"{i:04d}.png")
         save_png(depth[-1], out_dir / "trajectory_depth" / f"{i:04d}.png")
@@ -213,6 +222,8 @@ def _render_flows(
     panels, errors = [], []
     for k in range(len(cache)):
         panel, err = flow_comparison(model, cache.pair(k), config)
+        panel = with_titles(panel, ["motion flow (target)", f"Gaussian flow, EPE {err['gaussian_flow_epe']:.2f} px",
+                                    f"velocity flow, EPE {err['velocity_flow_epe']:.2f} px"])
         panels.append(panel)
         errors.append({"pair": k, **err})
         save_png(panel, out_dir / "flows_motion_gaussian_velocity" / f"{k:04d}.png")

@@ -5,9 +5,11 @@ import re
 
 import pytest
 import torch
+from PIL import Image
 
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.data import DataConfig, load_scene
+from pidg.evaluation.images import TITLE_STRIP_PX
 from pidg.evaluation.video import ffmpeg_available
 from pidg.models.deformation import HashGridConfig
 from pidg.pipeline import DEMO_DEPTH_CHANGE_WEIGHT, DEMO_DEPTH_WEIGHT, demo_config, render_run
@@ -42,7 +44,9 @@ def test_render_writes_velocity_stress_flows_and_split(full_run):
     assert {"fixed_view_velocity", "fixed_view_velocity_quiver", "fixed_view_stress_magnitude",
             "train_flows_motion_gaussian_velocity", "test_dynamic_red_static_blue"} <= {p.stem for p in written}
     out = full_run / "render_test"
-    assert len(list((out / "flows_motion_gaussian_velocity").glob("*.png"))) == 5  # 6 training frames -> 5 pairs
+    pairs = sorted((out / "flows_motion_gaussian_velocity").glob("*.png"))
+    assert len(pairs) == 5  # 6 training frames -> 5 pairs
+    assert Image.open(pairs[0]).size == (3 * 32, 32 + TITLE_STRIP_PX)  # target | Gaussian | velocity, titled
     scales = json.loads((out / "field_scales.json").read_text())
     assert scales["dt_physics_units"] == pytest.approx(1.0)  # default time_scale: one unit per training frame
     errors = json.loads((out / "flow_errors.json").read_text())

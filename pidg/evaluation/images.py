@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
-from PIL import Image
+from PIL import Image, ImageDraw, ImageFont
 from torch import Tensor
+
+TITLE_STRIP_PX = 16  # height of the strip :func:`with_titles` adds (even, so a video's frame size stays even)
 
 
 def to_uint8(image: Tensor) -> np.ndarray:
@@ -20,6 +23,24 @@ def save_png(image: Tensor, path: Path | str) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(to_uint8(image)).save(path)
     return path
+
+
+def with_titles(image: Tensor, titles: Sequence[str]) -> Tensor:
+    """``image`` [H, W, 3] in [0, 1], made of ``len(titles)`` panels of equal width side by side, with a black strip of
+    :data:`TITLE_STRIP_PX` rows above it naming each panel (white, PIL's built-in font: no font file to ship; a title
+    longer than its panel is cut at the panel's edge). A saved picture then says what it shows without the docs."""
+    width = int(image.shape[1])
+    if not titles or width % len(titles):
+        raise ValueError(f"with_titles: an image {width} px wide cannot hold {len(titles)} equal panels")
+    panel = width // len(titles)
+    strip = Image.new("RGB", (width, TITLE_STRIP_PX))
+    font = ImageFont.load_default()
+    for k, title in enumerate(titles):
+        label = Image.new("RGB", (panel, TITLE_STRIP_PX))
+        ImageDraw.Draw(label).text((3, 2), title, fill=(255, 255, 255), font=font)
+        strip.paste(label, (k * panel, 0))
+    top = torch.from_numpy(np.asarray(strip).copy()).to(device=image.device, dtype=torch.float32).div_(255.0)
+    return torch.cat([top, image.detach().float().clamp(0, 1)], dim=0)
 
 
 def colorize_scalar(values: Tensor, valid: Tensor | None = None, lo: float | None = None, hi: float | None = None) -> Tensor:

@@ -112,6 +112,15 @@ def truth_flow_comparison(flows: FrameFlows) -> tuple[Tensor, float]:
     return torch.cat(panels, dim=1), scale
 
 
+def truth_flow_titles(flows: FrameFlows, scale: float) -> list[str]:
+    """Titles of :func:`truth_flow_comparison`'s four panels (``scale``: the px its error ramp tops out at), for
+    :func:`pidg.evaluation.images.with_titles`."""
+    has_velocity = flows.model.velocity is not None
+    learned = "velocity" if has_velocity else "motion"
+    return ["true motion flow", "model's motion flow", "velocity flow" if has_velocity else "no material field",
+            f"{learned}-flow error, 0-{scale:.1f} px"]
+
+
 @torch.no_grad()
 def dynamic_split_image(model: DynamicGaussians, frame: Frame) -> Tensor:
     """The render tinted by the decoupling: dynamic Gaussians red, static ones blue (weighted per pixel)."""

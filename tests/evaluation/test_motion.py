@@ -19,6 +19,7 @@ from torch import Tensor, nn
 
 from pidg.data.motion_gt import FrameFlow, MotionObject, VertexMotion, read_motion_gt, write_frame_flow, write_motion_gt
 from pidg.data.scene import DatasetError, Frame
+from pidg.evaluation.images import TITLE_STRIP_PX
 from pidg.evaluation.motion import (
     RADIUS_FRACTION,
     SEEN_MIN_WEIGHT,
@@ -285,7 +286,7 @@ def test_a_wrong_field_velocity_shows_in_the_velocity_errors_only(tmp_path):
 
 def test_the_flow_picture_shows_truth_motion_velocity_and_error_on_the_scored_pixels(tmp_path):
     from pidg.evaluation.flow_vis import flow_rgb_tensor
-    from pidg.evaluation.visualize import truth_flow_comparison
+    from pidg.evaluation.visualize import truth_flow_comparison, truth_flow_titles
 
     truth, frames = write_truth(tmp_path)
     seen = []
@@ -305,6 +306,12 @@ def test_the_flow_picture_shows_truth_motion_velocity_and_error_on_the_scored_pi
     # the velocity flow's error is the true flow's size, the top of the ramp: the ramp's last colour everywhere
     yellow = torch.tensor([0.993, 0.906, 0.144])
     torch.testing.assert_close(error_panel[flows.scored], yellow.expand(SCORED_PIXELS // 2, 3), atol=2e-3, rtol=0)
+    # the saved picture names its panels, the error's ramp with its top in px
+    assert truth_flow_titles(flows, scale) == ["true motion flow", "model's motion flow", "velocity flow",
+                                               f"velocity-flow error, 0-{size:.1f} px"]
+    bare = []
+    evaluate_motion(plane_model(None), frames, truth, on_frame=bare.append)
+    assert truth_flow_titles(bare[0], 2.0)[2:] == ["no material field", "motion-flow error, 0-2.0 px"]
 
 
 class HalfStepField(nn.Module):
@@ -516,7 +523,7 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     assert (run / "eval_test" / "metrics.json").is_file()
     pictures = sorted((run / "eval_test" / "motion_flow").iterdir())  # truth | motion | velocity | error per test view
     assert [p.stem for p in pictures] == sorted(r["view"].replace("/", "_") for r in data["per_frame"])
-    assert all(Image.open(p).size == (4 * 32, 32) for p in pictures)
+    assert all(Image.open(p).size == (4 * 32, 32 + TITLE_STRIP_PX) for p in pictures)  # four panels under their titles
     # each scored pair's target error, and their pixel-weighted mean is the pooled one
     pairs = data["target"]["per_pair"]
     assert len(pairs) == 5 and len({r["frame"] for r in pairs}) == 5
