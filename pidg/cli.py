@@ -4,10 +4,13 @@ from __future__ import annotations
 from pidg import _env  # noqa: F401  (must precede torch)
 
 import argparse
+import contextlib
 import json
 import logging
 import sys
+import warnings
 from pathlib import Path
+from typing import Iterator
 from typing import NoReturn, get_args
 
 from pidg.bench.cmr import VARIANTS as CMR_BENCH_VARIANTS
@@ -463,6 +466,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(message: Warning | str, category: type[Warning], filename: str, lineno: int, line: str | None = None) -> str:
+    return f"{category.__name__}: {message}"
+
+
+@contextlib.contextmanager
+def warnings_as_log_lines() -> Iterator[None]:
+    """While a command runs, a warning (e.g. "ms_ssim reported as None" on small images) is one log line, "WARNING
+    py.warnings: RuntimeWarning: ...", instead of Python's form with a file, a line number and a line of pidg's
+    source, which reads like a crash to a user; ``pidg --debug`` keeps Python's form."""
+    format_before = warnings.formatwarning
+    warnings.formatwarning = _one_line
+    logging.captureWarnings(True)
+    try:
+        yield
+    finally:
+        logging.captureWarnings(False)
+        warnings.formatwarning = format_before
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run a command. An error reaches the user as one line naming the input and the problem (exit status 2);
     ``pidg --debug ...`` shows the whole traceback instead."""
@@ -471,7 +493,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.debug:
         return args.func(args)
     try:
-        return args.func(args)
+        with warnings_as_log_lines():
+            return args.func(args)
     except KeyboardInterrupt:
         print(f"pidg {args.command}: interrupted", file=sys.stderr)
         return 130

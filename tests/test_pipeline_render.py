@@ -1,6 +1,7 @@
 """`pidg render` on a tiny full-PIDG run writes the physics and flow pictures next to the usual videos."""
 import dataclasses
 import json
+import logging
 import re
 
 import pytest
@@ -120,3 +121,13 @@ def test_demo_with_a_negative_depth_weight_stops_before_making_the_scene(tmp_pat
     assert main(["demo", "--out", str(tmp_path / "demo"), "--depth-weight", "-1"]) != 0
     assert "lambda_depth must be >= 0" in capsys.readouterr().err
     assert not (tmp_path / "demo" / "data").exists()
+
+
+def test_cli_eval_tells_small_images_miss_ms_ssim_in_one_log_line(full_run, caplog):
+    from pidg.cli import main
+
+    with caplog.at_level(logging.WARNING):
+        assert main(["eval", str(full_run), "--split", "test", "--lpips", "none"]) == 0
+    notes = [r.getMessage() for r in caplog.records if r.name == "py.warnings"]
+    assert notes and notes[0].startswith("RuntimeWarning: ms_ssim reported as None: MS-SSIM") and "\n" not in notes[0]
+    assert ".py:" not in notes[0]  # no file and line of pidg's source

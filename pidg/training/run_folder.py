@@ -4,11 +4,13 @@ A new run never writes into a folder that holds another run unless told to (``--
 can write there before any training, so that no work is lost at the first checkpoint. A resumed run starts from
 the saved config; options given with ``--resume`` that change the data or the model are refused with the
 differences listed (the checkpoint was trained on them), and the others (a longer schedule, other learning rates,
-another device) apply and are recorded in ``config.json``.
+another device) apply and are recorded in ``config.json``. A run records its dataset by an absolute path, so that
+whatever reads the run later finds the data from any working folder.
 """
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +70,8 @@ def resume_config(saved: TrainConfig, overrides: dict[str, str]) -> tuple[TrainC
 
     Raises ValueError listing every change of the data or the model (see the module docstring)."""
     new = apply_overrides(saved, overrides)
+    if Path(str(new.data.path)).resolve() == Path(str(saved.data.path)).resolve():
+        new = replace(new, data=replace(new.data, path=saved.data.path))  # the same folder, named from here
     changes = config_differences(saved, new)
     refused = [f"{name} {old} -> {value}" for name, old, value in changes if _frozen(name)]
     if new.needs_material_field and not saved.needs_material_field:
@@ -78,3 +82,13 @@ def resume_config(saved: TrainConfig, overrides: dict[str, str]) -> tuple[TrainC
             + " (start a new run with another --output.dir for these)"
         )
     return new, changes
+
+
+def with_absolute_data_path(config: TrainConfig) -> TrainConfig:
+    """``config`` with its dataset named by an absolute path, as a run records it in config.json: eval, render, the
+    viewer and ``--resume`` then find the data from any working folder (a relative path named it from the folder
+    the training started in). An empty path (a scene built in memory) stays as it is."""
+    path = str(config.data.path)
+    if not path or Path(path).is_absolute():
+        return config
+    return replace(config, data=replace(config.data, path=str(Path(path).resolve())))

@@ -49,6 +49,7 @@ from pidg.training.decoupling import StaticDynamicDecoupling
 from pidg.training.densification import DensificationStrategy
 from pidg.training.losses import LossTerm, StepInputs, build_loss_terms, ssim_kernel
 from pidg.training.optim import make_optimizers, reschedule
+from pidg.training.run_folder import with_absolute_data_path
 
 logger = logging.getLogger(__name__)
 
@@ -94,7 +95,7 @@ class Trainer:
     run. ``model`` is the scene model being trained (a :class:`DynamicGaussians`); pass one to start from it."""
 
     def __init__(self, config: TrainConfig, scene: SceneData, model: DynamicGaussians | None = None) -> None:
-        self.config = config
+        self.config = with_absolute_data_path(config)
         self.device = resolve_device(config.device)
         rasterizer = rasterizer_for(config.backend, self.device)  # before any work: a missing gsplat fails now
         retain_freed_memory()  # a step's large temporaries would otherwise be re-faulted from the OS every step

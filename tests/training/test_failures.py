@@ -219,6 +219,27 @@ def test_resume_refuses_other_data_or_model_and_applies_a_new_schedule(dataset, 
     assert state["step"] == 4 and state["optimizers"]["quats"]["param_groups"][0]["lr"] == 0.002  # not the saved 0.001
 
 
+def test_a_run_trained_from_a_relative_path_is_found_from_any_folder(dataset, tmp_path, capsys, monkeypatch):
+    """config.json names the dataset absolutely: eval from another folder finds it, and --resume accepts the same
+    folder named from there, but not another one."""
+    monkeypatch.chdir(dataset.parent)
+    run = tmp_path / "run"
+    assert run_cli(capsys, "train", "--data.path", dataset.name, "--output.dir", run, "--optim.iterations", "2", *SMALL)[0] == 0
+    assert json.loads((run / "config.json").read_text())["data"]["path"] == str(dataset.resolve())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main(["eval", str(run), "--lpips", "none"]) == 0 and (run / "eval_test" / "metrics.json").is_file()
+    same = os.path.relpath(dataset, elsewhere)
+    assert main(["train", "--resume", "--output.dir", str(run), "--data.path", same, "--optim.iterations", "3"]) == 0
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 3
+    capsys.readouterr()
+    other = write_procedural_dataset(ProceduralSceneConfig(n_train=5, n_test=1, width=16, height=16, n_gaussians=500,
+                                                           n_init_points=100), tmp_path / "other")
+    code, err = run_cli(capsys, "train", "--resume", "--output.dir", run, "--data.path", other, "--optim.iterations", "4")
+    assert code == 2 and len(err) == 1 and f"data.path {dataset.resolve()} -> {other}" in err[0]
+
+
 @pytest.mark.parametrize(
     "option, value, message",
     [
