@@ -10,8 +10,9 @@ import logging
 import sys
 import warnings
 from pathlib import Path
-from typing import Iterator
-from typing import NoReturn, get_args
+from typing import Iterator, NoReturn, get_args
+
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from pidg.bench.cmr import VARIANTS as CMR_BENCH_VARIANTS
 from pidg.bench.cmr import CMRBenchConfig, run_cmr_bench
@@ -493,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.debug:
         return args.func(args)
     try:
-        with warnings_as_log_lines():
+        with warnings_as_log_lines(), logging_redirect_tqdm():  # a log line mid-bar goes above the bar
             return args.func(args)
     except KeyboardInterrupt:
         print(f"pidg {args.command}: interrupted", file=sys.stderr)
