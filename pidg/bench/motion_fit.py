@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
@@ -50,7 +50,8 @@ from pidg.export.run_model import check_run_folder
 from pidg.models.deformation import DeformationConfig, DeformationModel, build_deformation
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.training.config import TrainConfig
-from pidg.training.optim import ScheduledOptimizer, deformation_optimizer
+from pidg.training.motion_start import fit_config, fit_field, identity_rows
+from pidg.training.optim import deformation_optimizer
 
 
 @dataclass(frozen=True)
@@ -165,44 +166,10 @@ def fresh_field(run_field: DeformationModel) -> DeformationModel:
     return new
 
 
-def _identity_rows(n: int) -> tuple[Tensor, Tensor]:
-    quats = torch.zeros(n, 4)
-    quats[:, 0] = 1.0
-    return quats, torch.zeros(n, 3)
-
-
-def fit_field(
-    model: DeformationModel, start: Tensor, targets: Tensor, times: Tensor, optimizer: ScheduledOptimizer, steps: int,
-    generator: torch.Generator,
-) -> float:
-    """Fit ``model`` with ``optimizer`` (:func:`pidg.training.optim.deformation_optimizer`) so that it carries
-    ``start`` [P, 3] to ``targets`` [T, P, 3] at ``times`` [T] in ``steps`` steps (module docstring); returns the last
-    step's loss."""
-    quats, log_scales = _identity_rows(len(start))
-    loss = torch.zeros(())
-    model.train()
-    for step in range(steps):
-        k = int(torch.randint(len(times), (1,), generator=generator))
-        out = model.deform(start, quats, log_scales, times[k].expand(len(start)), regularize=True)
-        loss = (out.means - targets[k]).abs().mean()
-        if out.regularization is not None:
-            loss = loss + out.regularization
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step(step)
-    return float(loss.detach())
-
-
-def fit_config(train_config: TrainConfig, steps: int) -> TrainConfig:
-    """The run's config for a fit of ``steps`` steps: its rates and decay over that length, no static warm-up (a
-    direct fit has no Gaussians to settle first)."""
-    return replace(train_config, optim=replace(train_config.optim, iterations=steps, static_warmup=0))
-
-
 @torch.no_grad()
 def carried_points(model: DeformationModel, start: Tensor, times: Tensor) -> Tensor:
     """``start`` [P, 3] deformed by ``model`` to every time of ``times`` [T]: [T, P, 3]."""
-    quats, log_scales = _identity_rows(len(start))
+    quats, log_scales = identity_rows(len(start))
     return torch.stack([model.deform(start, quats, log_scales, t.expand(len(start))).means for t in times])
 
 

@@ -66,9 +66,14 @@ def _check_field(name: str, t: Tensor, h: int, w: int, channels: int | None) -> 
 def backproject(depth: Tensor, camera: Camera) -> Tensor:
     """World points [H, W, 3] of every pixel centre at camera-space depth ``depth`` [H, W] (z, not ray length)."""
     h, w = depth.shape
-    p = pixel_centers(h, w, depth.dtype, depth.device)
-    x = (p[..., 0] - camera.cx) / camera.fx * depth
-    y = (p[..., 1] - camera.cy) / camera.fy * depth
+    return unproject_points(pixel_centers(h, w, depth.dtype, depth.device), depth, camera)
+
+
+def unproject_points(pixels: Tensor, depth: Tensor, camera: Camera) -> Tensor:
+    """World points [..., 3] of image positions ``pixels`` [..., 2] (x right, y down, centre convention) at
+    camera-space depths ``depth`` [...] (z, not ray length): the inverse of ``Camera.project_points``."""
+    x = (pixels[..., 0] - camera.cx) / camera.fx * depth
+    y = (pixels[..., 1] - camera.cy) / camera.fy * depth
     cam = torch.stack([x, y, depth], dim=-1)
     # The exact inverse rather than R^T: a float32 rotation is orthogonal only to ~1e-7, and the re-projection
     # must invert Camera.project_points to well below a pixel's thousandth.

@@ -12,8 +12,6 @@ import torch
 from pidg.bench.motion_fit import (
     MotionFitConfig,
     carried_points,
-    fit_config,
-    fit_field,
     fresh_field,
     score_field,
     static_anchors,
@@ -23,6 +21,7 @@ from pidg.data.motion_gt import MotionGroundTruth, MotionObject, VertexMotion
 from pidg.models.deformation import Bounds, Grid4D, Grid4DConfig, HashGridConfig
 from pidg.models.deformation.identity import IdentityDeformation
 from pidg.training.config import TrainConfig
+from pidg.training.motion_start import fit_config, fit_field
 from pidg.training.optim import deformation_optimizer
 
 TURN_DEG = 10.0  # the square's turn per sample interval

@@ -1,0 +1,186 @@
+"""Rigid-body tracks from flow and depth: the motions' maths against closed forms, and two bodies tracked through an
+exact synthetic flow (one of them through a gap) to their true positions."""
+import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
+
+import math
+
+import pytest
+import torch
+
+from pidg.data.scene import Frame
+from pidg.flow.preprocess import FlowCache
+from pidg.flow.rigid_tracks import (
+    RigidTrackConfig,
+    _carried,
+    _rotation_power,
+    connected_labels,
+    lifted_pairs,
+    ransac_rigid,
+    rigid_fit,
+    track_rigid_bodies,
+)
+from pidg.render import Camera
+
+
+def rotation_z(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def random_rotation(generator: torch.Generator) -> torch.Tensor:
+    q, r = torch.linalg.qr(torch.randn(3, 3, generator=generator, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r))
+    return q if torch.linalg.det(q) > 0 else -q
+
+
+def test_rigid_fit_recovers_a_rotation_and_translation():
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(50, 3, generator=gen, dtype=torch.float64)
+    rotation, shift = random_rotation(gen), torch.tensor([0.3, -1.0, 2.0], dtype=torch.float64)
+    r, t = rigid_fit(a, a @ rotation.T + shift)
+    torch.testing.assert_close(r, rotation, atol=1e-10, rtol=0)
+    torch.testing.assert_close(t, shift, atol=1e-10, rtol=0)
+    assert torch.linalg.det(rigid_fit(a, a * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))[0]) > 0  # no reflection
+
+
+def test_ransac_finds_the_motion_most_pairs_agree_with():
+    gen = torch.Generator().manual_seed(1)
+    a = torch.randn(200, 3, generator=gen, dtype=torch.float64)
+    rotation, shift = random_rotation(gen), torch.tensor([1.0, 0.0, 0.5], dtype=torch.float64)
+    b = a @ rotation.T + shift
+    wrong = torch.arange(200) % 10 < 3  # 30 % of the pairs matched to somewhere else
+    b[wrong] += torch.randn(int(wrong.sum()), 3, generator=gen, dtype=torch.float64)
+    r, t, inliers = ransac_rigid(a, b, inlier=0.01, iterations=100, generator=gen)
+    torch.testing.assert_close(r, rotation, atol=1e-9, rtol=0)
+    torch.testing.assert_close(t, shift, atol=1e-9, rtol=0)
+    assert torch.equal(inliers, ~wrong)
+    assert ransac_rigid(a[:2], b[:2], 0.01, 10, gen) is None
+
+
+def test_connected_labels_join_chains_and_part_clusters():
+    chain = torch.stack([torch.arange(20, dtype=torch.float64) * 0.04, torch.zeros(20), torch.zeros(20)], dim=1)  # ends 0.76 apart
+    apart = chain + torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    labels = connected_labels(torch.cat([chain, apart]), link=0.05, chunk=7)  # blocks of 7 rows: across block edges
+    assert len(torch.unique(labels[:20])) == 1 and len(torch.unique(labels[20:])) == 1 and labels[0] != labels[20]
+    assert len(torch.unique(connected_labels(chain, link=0.03))) == 20  # no two points close enough
+
+
+def test_a_motion_s_power_and_its_constant_velocity_extrapolation():
+    gen = torch.Generator().manual_seed(2)
+    rotation = random_rotation(gen)
+    half = _rotation_power(rotation, 0.5)
+    torch.testing.assert_close(half @ half, rotation, atol=1e-10, rtol=0)
+    torch.testing.assert_close(_rotation_power(rotation, 1.0), rotation, atol=1e-10, rtol=0)
+    x = torch.randn(30, 3, generator=gen, dtype=torch.float64)
+    centre = x.mean(0)
+    spin, drift = rotation_z(0.2), torch.tensor([0.1, 0.0, -0.2], dtype=torch.float64)
+    shift = centre - centre @ spin.T + drift  # over one interval: a turn about the centroid, and the centroid moves
+    for s in (2.0, 0.5):  # s intervals at the same velocities: s times the turn about the moving centroid, s times the drift
+        expected = (x - centre) @ rotation_z(0.2 * s).T + centre + s * drift
+        torch.testing.assert_close(_carried(x, spin, shift, s), expected, atol=1e-10, rtol=0)
+
+
+# ---- two bodies in an exact synthetic flow ----------------------------------------------------------------------
+SIZE, DEPTH, FOCAL = 64, 5.0, 64.0
+CAMERA = Camera(torch.eye(4), FOCAL, FOCAL, SIZE / 2, SIZE / 2, SIZE, SIZE)
+HALF = 0.6  # each body is a square of side 1.2 world units facing the camera at depth 5
+CENTRES = torch.tensor([[-1.0, 0.0, DEPTH], [1.1, 0.2, DEPTH]], dtype=torch.float64)
+STEP = [(rotation_z(0.08), torch.tensor([0.03, 0.02, 0.0], dtype=torch.float64)),  # body 0 turns about its centre and drifts
+        (torch.eye(3, dtype=torch.float64), torch.tensor([-0.025, 0.015, 0.0], dtype=torch.float64))]  # body 1 slides
+
+
+def pose(body: int, k: int, stop: dict[int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Body ``body``'s motion from frame 0 to frame k: x_k = R x_0 + t (k steps about its moving centre; none after
+    frame ``stop[body]``)."""
+    k = min(k, (stop or {}).get(body, k))
+    rotation, drift = STEP[body]
+    r = torch.linalg.matrix_power(rotation, k)
+    c = CENTRES[body]
+    return r, c + k * drift - c @ r.T
+
+
+def frames_and_cache(n: int, gap: dict[int, list[int]], stop: dict[int, int] | None = None) -> tuple[list[Frame], FlowCache]:
+    """``n`` frames of the two bodies over a still background at depth 9; each pair's forward flow exact, and invalid
+    on body b's pixels for the intervals in ``gap[b]``; body b still from frame ``stop[b]`` on (off the motion mask)."""
+    stop = stop or {}
+    ys, xs = torch.meshgrid(torch.arange(SIZE, dtype=torch.float64) + 0.5, torch.arange(SIZE, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    pixels = torch.stack([xs, ys], dim=-1).reshape(-1, 2)
+    frames, owners = [], []
+    for k in range(n):
+        depth, owner = torch.full((SIZE * SIZE,), 9.0, dtype=torch.float64), torch.full((SIZE * SIZE,), -1)
+        for body in range(2):
+            r, t = pose(body, k, stop)
+            world = torch.cat([(pixels - SIZE / 2) / FOCAL * DEPTH, torch.full((SIZE * SIZE, 1), DEPTH, dtype=torch.float64)], 1)
+            at_start = (world - t) @ r  # where the point seen here was at frame 0 (inverse motion)
+            inside = ((at_start[:, :2] - CENTRES[body, :2]).abs() < HALF).all(dim=1)
+            depth[inside], owner[inside] = DEPTH, body
+        moving = (owner >= 0) & ~torch.tensor([k >= stop.get(b, n) for b in range(2)] + [False])[owner]
+        frames.append(Frame(CAMERA, k / (n - 1), torch.zeros(SIZE, SIZE, 3, dtype=torch.uint8), moving.reshape(SIZE, SIZE),
+                            f"train/{k:03d}", depth=depth.reshape(SIZE, SIZE).float()))
+        owners.append(owner)
+    forward, valid = torch.zeros(n - 1, SIZE, SIZE, 2), torch.zeros(n - 1, SIZE, SIZE, dtype=torch.bool)
+    for k in range(n - 1):
+        flow = torch.zeros(SIZE * SIZE, 2, dtype=torch.float64)
+        ok = torch.ones(SIZE * SIZE, dtype=torch.bool)  # the still background: zero flow, valid
+        world = torch.cat([(pixels - SIZE / 2) / FOCAL * DEPTH, torch.full((SIZE * SIZE, 1), DEPTH, dtype=torch.float64)], 1)
+        for body in range(2):
+            mine = owners[k] == body
+            r0, t0 = pose(body, k, stop)
+            r1, t1 = pose(body, k + 1, stop)
+            moved = ((world[mine] - t0) @ r0) @ r1.T + t1  # frame k -> frame 0 -> frame k + 1
+            flow[mine] = CAMERA.project_points(moved)[0] - pixels[mine]
+            if k in gap.get(body, []):
+                ok[mine] = False
+        forward[k], valid[k] = flow.reshape(SIZE, SIZE, 2).float(), ok.reshape(SIZE, SIZE)
+    return frames, FlowCache(None, frames, forward.half(), forward.half(), valid, valid)
+
+
+def truth(start: torch.Tensor, k: int, stop: dict[int, int] | None = None) -> torch.Tensor:
+    """Where the tracked points ``start`` (frame 0) are at frame k: each carried by its own body's motion."""
+    body = (start[:, 0] > 0).long()  # body 0 left of the axis, body 1 right
+    out = start.clone()
+    for b in range(2):
+        r, t = pose(b, k, stop)
+        out[body == b] = start[body == b] @ r.T + t
+    return out
+
+
+def test_two_bodies_are_tracked_to_their_true_positions_and_through_a_one_interval_gap():
+    frames, cache = frames_and_cache(8, gap={1: [3]})
+    a, b = lifted_pairs(cache.pair(0))
+    assert len(a) > 400 and bool((a[:, 2] - DEPTH).abs().max() < 1e-5)  # the still background is not a moving pixel
+    tracks = track_rigid_bodies(cache, RigidTrackConfig(points=400, static_points=50, iterations=50), torch.Generator().manual_seed(0))
+    assert int(tracks.body.max()) == 1 and tracks.positions.shape == (8, 400, 3) and tracks.known.all()
+    assert torch.equal(tracks.body, (tracks.positions[0, :, 0] > 0).long()) or torch.equal(tracks.body, (tracks.positions[0, :, 0] < 0).long())
+    assert not bool(tracks.found[3, tracks.body[tracks.positions[0, :, 0] > 0][0]])  # body 1 had no flow there: carried
+    for k in range(8):  # the flow is stored as float16: positions right to its rounding
+        assert float((tracks.positions[k] - truth(tracks.positions[0], k)).norm(dim=1).max()) < 0.01
+    assert tracks.static.shape == (50, 3) and bool(((tracks.static[:, 2] - 9.0).abs() < 1e-4).all())
+
+
+def test_a_body_lost_longer_than_the_allowed_gap_ends_its_tracks():
+    frames, cache = frames_and_cache(7, gap={0: [2, 3]})
+    tracks = track_rigid_bodies(cache, RigidTrackConfig(points=300, static_points=10, iterations=50, max_gap=1),
+                                torch.Generator().manual_seed(0))
+    left = tracks.positions[0, :, 0] < 0
+    assert tracks.known[:4, left].all() and not tracks.known[4:, left].any()  # carried over interval 2, ended at 3
+    assert tracks.known[:, ~left].all()
+
+
+def test_a_body_that_comes_to_rest_stays_tracked_where_it_stopped():
+    frames, cache = frames_and_cache(8, gap={}, stop={1: 4})  # body 1 still (and off the motion mask) from frame 4
+    tracks = track_rigid_bodies(cache, RigidTrackConfig(points=300, static_points=10, iterations=50, max_gap=1),
+                                torch.Generator().manual_seed(0))
+    right = tracks.positions[0, :, 0] > 0
+    assert tracks.known.all()  # not lost: at rest
+    assert not tracks.found[4:, tracks.body[right][0]].any()  # no flow pairs on it from frame 4
+    for k in range(8):
+        assert float((tracks.positions[k] - truth(tracks.positions[0], k, {1: 4})).norm(dim=1).max()) < 0.01
+
+
+def test_frames_without_depth_are_named():
+    frames, cache = frames_and_cache(3, gap={})
+    frames[1].depth = None
+    with pytest.raises(ValueError, match="train/001 has no depth"):
+        track_rigid_bodies(cache, RigidTrackConfig(), torch.Generator())
