@@ -169,7 +169,7 @@ def fresh_field(run_field: DeformationModel) -> DeformationModel:
 @torch.no_grad()
 def carried_points(model: DeformationModel, start: Tensor, times: Tensor) -> Tensor:
     """``start`` [P, 3] deformed by ``model`` to every time of ``times`` [T]: [T, P, 3]."""
-    quats, log_scales = identity_rows(len(start))
+    quats, log_scales = identity_rows(len(start), start.device)
     return torch.stack([model.deform(start, quats, log_scales, t.expand(len(start))).means for t in times])
 
 

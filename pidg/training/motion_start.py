@@ -18,11 +18,11 @@ from pidg.training.optim import ScheduledOptimizer, deformation_optimizer
 logger = logging.getLogger(__name__)
 
 
-def identity_rows(n: int) -> tuple[Tensor, Tensor]:
-    """Unit quaternions [n, 4] and zero log-scales [n, 3]: points deformed as Gaussians without shape."""
-    quats = torch.zeros(n, 4)
+def identity_rows(n: int, device: torch.device | str = "cpu") -> tuple[Tensor, Tensor]:
+    """Unit quaternions [n, 4] and zero log-scales [n, 3] on ``device``: points deformed as Gaussians without shape."""
+    quats = torch.zeros(n, 4, device=device)
     quats[:, 0] = 1.0
-    return quats, torch.zeros(n, 3)
+    return quats, torch.zeros(n, 3, device=device)
 
 
 def fit_field(
@@ -33,7 +33,7 @@ def fit_field(
     ``start`` [P, 3] to ``targets`` [T, P, 3] at ``times`` [T] in ``steps`` steps: each step one time drawn at random,
     the mean absolute position error (world units) of the points ``known`` [T, P] there (all without it), plus the
     field's own regulariser. Returns the last step's loss."""
-    quats, log_scales = identity_rows(len(start))
+    quats, log_scales = identity_rows(len(start), start.device)  # the trainer's start fits on the run's device
     loss = torch.zeros(())
     model.train()
     for step in range(steps):

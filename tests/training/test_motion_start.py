@@ -42,7 +42,7 @@ def moved(trainer: Trainer, t: float) -> float:
     """Mean distance (world units) the deformation moves the canonical Gaussians to time t."""
     field = trainer.model.deformation
     means = trainer.model.gaussians.params["means"].detach()
-    quats, scales = identity_rows(len(means))
+    quats, scales = identity_rows(len(means), means.device)
     with torch.no_grad():
         return float((field.deform(means, quats, scales, torch.full((len(means),), t)).means - means).norm(dim=1).mean())
 
