@@ -65,6 +65,7 @@ Pairs whose t+1 is not t + ``frame_interval`` (a held-out image between them) ar
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -78,6 +79,7 @@ from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.charts import svg_chart
 from pidg.flow import FlowCache, FlowConfig, FlowTarget, VelocityIntegration, interval_velocity, model_flow_target
 from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
+from pidg.flow.rigid_tracks import rigid_fit, rotation_angle
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.time_axis import TimeAxis
@@ -627,21 +629,16 @@ def _tracking_scores(
 def best_rotation(source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
     """The rotation R [3, 3] that best carries the points ``source`` [M, 3] onto ``target`` [M, 3], both centred on
     their means (least squares, Kabsch: from the SVD of the cross-covariance, with the sign that excludes a
-    reflection), and the fit's RMS residual (the points' units); float64."""
-    a = source.double() - source.double().mean(0)
-    b = target.double() - target.double().mean(0)
-    u, _, vh = torch.linalg.svd(a.T @ b)
-    d = torch.ones(3, dtype=torch.float64, device=a.device)
-    d[2] = torch.sign(torch.linalg.det(vh.T @ u.T))
-    rotation = vh.T @ torch.diag(d) @ u.T
-    residual = ((a @ rotation.T - b).square().sum(-1).mean()).sqrt()
+    reflection: :func:`pidg.flow.rigid_tracks.rigid_fit`), and the fit's RMS residual (the points' units); float64."""
+    a, b = source.double(), target.double()
+    rotation, shift = rigid_fit(a, b)
+    residual = ((a @ rotation.T + shift - b).square().sum(-1).mean()).sqrt()
     return rotation, residual
 
 
 def rotation_angle_deg(rotation: Tensor) -> float:
     """The angle of a rotation matrix [3, 3], degrees in [0, 180]."""
-    cos = ((torch.trace(rotation) - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return float(torch.rad2deg(torch.arccos(cos)))
+    return math.degrees(rotation_angle(rotation))
 
 
 def rigid_turn(x0: Tensor, x1: Tensor) -> tuple[Tensor, float] | None:

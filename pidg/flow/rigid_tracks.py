@@ -147,9 +147,14 @@ def connected_labels(points: Tensor, link: float, chunk: int = 2048) -> Tensor:
     return torch.unique(roots, return_inverse=True)[1]
 
 
+def rotation_angle(rotation: Tensor) -> float:
+    """The angle of a rotation matrix [3, 3], radians in [0, pi]."""
+    return math.acos(max(-1.0, min(1.0, (float(torch.trace(rotation)) - 1.0) / 2.0)))
+
+
 def _rotation_power(rotation: Tensor, s: float) -> Tensor:
     """R^s: the same axis, s times the angle (Rodrigues)."""
-    angle = math.acos(max(-1.0, min(1.0, (float(torch.trace(rotation)) - 1.0) / 2.0)))
+    angle = rotation_angle(rotation)
     if angle < 1e-9:
         return torch.eye(3, dtype=rotation.dtype)
     axis = torch.stack([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
