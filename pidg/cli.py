@@ -18,6 +18,7 @@ from pidg.bench.cmr import VARIANTS as CMR_BENCH_VARIANTS
 from pidg.bench.cmr import CMRBenchConfig, run_cmr_bench
 from pidg.bench.executors import ExecutorName, make_executor
 from pidg.bench.motion_fit import MotionFitConfig, run_motion_fit
+from pidg.bench.rigid_tracks import run_rigid_tracks_bench
 from pidg.bench.quality import run_quality_bench
 from pidg.bench.suite import SUITES, discover_scenes, run_suite, suite_config
 from pidg.bench.render import RenderBenchCase, RenderBenchConfig, run_render_bench
@@ -225,6 +226,11 @@ def _cmd_bench_views(args: argparse.Namespace) -> int:
 def _cmd_bench_motion_fit(args: argparse.Namespace) -> int:
     config = MotionFitConfig(steps=args.steps, surface_points=args.points, static_points=args.static_points, seed=args.seed)
     run_motion_fit(Path(args.run), config, Path(args.out) if args.out else None)
+    return 0
+
+
+def _cmd_bench_rigid_tracks(args: argparse.Namespace) -> int:
+    run_rigid_tracks_bench(Path(args.dataset), args.seed, Path(args.out) if args.out else None)
     return 0
 
 
@@ -452,6 +458,13 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--seed", type=int, default=MotionFitConfig.seed, help="seed of the sampling and of the fit")
     fit.add_argument("--out", default="outputs/bench/motion_fit.json", help="JSON with all figures ('' for none)")
     fit.set_defaults(func=_cmd_bench_motion_fit)
+
+    tracks = bench_sub.add_parser("rigid-tracks", help="a generated scene: the rigid-body tracks that --optim.motion_start "
+                                  "rigid_tracks fits the deformation to, against the true motion")
+    tracks.add_argument("dataset", help="a dataset from `pidg make-scene` (with depth, motion masks and motion_gt/)")
+    tracks.add_argument("--seed", type=int, default=TrainConfig().optim.seed, help="the run's --optim.seed (the tracker's sampling)")
+    tracks.add_argument("--out", default="outputs/bench/rigid_tracks.json", help="JSON with all figures ('' for none)")
+    tracks.set_defaults(func=_cmd_bench_rigid_tracks)
 
     cmr = bench_sub.add_parser("cmr", help="CMR loss cost: time per sample size, peak memory at 20k vs 200k particles")
     cmr.add_argument("--samples", type=int, nargs="+", default=list(CMRBenchConfig.samples), help="sample sizes M")

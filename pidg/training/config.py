@@ -93,11 +93,12 @@ class OptimConfig:
     """The curriculum's first window, as a share of the training times' span (read when time_curriculum_steps > 0)."""
     motion_start: MotionStart = "rest"
     """Where the deformation starts. rest: the identity (the paper). rigid_tracks (an extension, for scenes of rigid
-    bodies; needs the flow on, the dataset's depth maps and motion masks): before step 0 it is fitted to the first
-    frame's moving surface tracked through the cached optical flow as rigid bodies, and to the still surface held
-    still (pidg.flow.rigid_tracks; docs/motion.md, "A start from rigid-body tracks"). Training from rest hands a
-    moving body from Gaussian to Gaussian and learns neither its path nor its turn; from a start near the true
-    motion the image losses keep it (a generated rigid scene: the 3D tracking error halved, +0.4-1.0 dB)."""
+    or keyframed bodies; needs the flow on, the dataset's depth maps and motion masks): before step 0 it is fitted to
+    the moving surfaces tracked as rigid bodies through the cached optical flow and the depth maps, and to the still
+    surface held still (pidg.flow.rigid_tracks; docs/motion.md, "Rigid-body tracks that hold"). Training from rest
+    hands a moving body from Gaussian to Gaussian and learns neither its path nor its turn; from a start near the true
+    motion the image losses keep it (the generated rigid and kinematic scenes, with grid_lr_factor 1 and
+    physics.lambda_kinematic 1: the 3D tracking error about halved or better, +0.45-1.4 dB)."""
     motion_start_steps: Annotated[int, AT_LEAST_ONE] = 1000
     """Steps of the fit motion_start makes (rigid_tracks), at the run's deformation rates and their decay."""
     time_budget_minutes: Annotated[float, POSITIVE] | None = None

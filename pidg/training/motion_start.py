@@ -60,9 +60,9 @@ def start_from_rigid_tracks(field: DeformationModel, cache: FlowCache, config: T
     and motion masks), each point while its body is tracked, and to the first frame's still surface held still, over
     ``optim.motion_start_steps`` steps at the run's rates (the training's own optimizer then starts afresh). A body
     lost before half the training intervals is left out: a field fitted to the start of a path leaves the rest of it
-    anywhere (the kinematic scene, lost at interval 16 of 44: far worse than a start at rest), while a body lost late
-    still gives most of its path (docs/motion.md, "A start from rigid-body tracks"). ValueError when every body is lost
-    that early. Returns the tracks."""
+    anywhere (the kinematic head, lost at interval 16 of 44 by the first tracker, which followed the flow alone: far
+    worse than a start at rest), while a body lost late still gives most of its path (docs/motion.md, "A start from
+    rigid-body tracks"). ValueError when every body is lost that early. Returns the tracks."""
     began = time.perf_counter()
     generator = torch.Generator().manual_seed(config.optim.seed)
     tracks = track_rigid_bodies(cache, RigidTrackConfig(), generator)
@@ -71,9 +71,9 @@ def start_from_rigid_tracks(field: DeformationModel, cache: FlowCache, config: T
     use = 2 * tracked_to >= intervals
     n_bodies, kept = int(tracks.body.max()) + 1, len(torch.unique(tracks.body[use]))
     if kept == 0:
-        raise ValueError(f"every body was lost before half the training intervals (the flow held no consistent pairs on "
-                         f"it for more than one interval; the last by interval {int(tracked_to.max())} of {intervals}): "
-                         "train from rest")
+        raise ValueError(f"every body was lost before half the training intervals (neither the flow nor the next "
+                         f"frame's depth placed it for more than one interval; the last by interval "
+                         f"{int(tracked_to.max())} of {intervals}): train from rest")
     steps = config.optim.motion_start_steps
     moving, still = tracks.positions[:, use].float(), tracks.static.float()
     start = torch.cat([moving[0], still])

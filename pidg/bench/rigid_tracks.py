@@ -1,0 +1,148 @@
+"""``pidg bench rigid-tracks DATASET``: how far from the truth are the rigid-body tracks that
+``--optim.motion_start rigid_tracks`` fits the deformation to (:mod:`pidg.flow.rigid_tracks`)?
+
+On a scene from ``pidg make-scene``, the tracks are made as a run on it makes them (the dataset's default config for
+this machine with the flow on: the same flow cache, settings and seed) and each tracked point is scored against
+where the true motion carries it: its object is the one whose true vertex lies nearest its first-frame position, and
+that object's true motion from the first training frame to each later one is the Kabsch fit of its vertices (exact
+for a rigid or keyframed object; objects of other kinds, cloth and soft bodies, are not scored). Figures per body
+and in all: the position error (world units) over the frames where the body is tracked, as a share of the distance
+the truth carries the points from the first frame (0 = right, 1 = as far off as standing still); how many training
+intervals the body was tracked through; and the share of them in which a motion was fitted (the others carried at
+rest or at constant velocity).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from pidg.config_tools import apply_overrides
+from pidg.data import dataset_layout, load_scene
+from pidg.data.motion_gt import MotionGroundTruth, read_motion_gt
+from pidg.flow.preprocess import open_flow_cache
+from pidg.flow.rigid_tracks import RigidTrackConfig, RigidTracks, rigid_fit, track_rigid_bodies
+from pidg.training.config import TrainConfig, apply_preset
+
+RIGID_KINDS = ("rigid", "kinematic")
+"""Object kinds of ``motion_gt/meta.json`` that move rigidly (their vertices' Kabsch fit is their motion)."""
+
+
+@dataclass
+class BodyScore:
+    """One tracked body against the truth."""
+
+    body: int
+    object: str  # the true object most of its points lie on ("" when none they lie on moves rigidly)
+    points: int
+    on_object: float  # share of its points whose nearest true vertex is on that object
+    tracked_intervals: int  # intervals it was tracked through (of the run's training intervals)
+    fitted: float  # share of those in which a motion was fitted (not carried at rest or constant velocity)
+    error: float | None  # mean position error over the tracked frames, world units
+    relative: float | None  # pooled error / pooled true travel from the first frame
+
+
+@dataclass
+class TrackBenchResult:
+    dataset: str
+    intervals: int
+    seconds: float  # the tracking's wall time on this machine
+    relative: float | None  # over every scored point and tracked frame
+    tracked_share: float  # share of (point, frame) entries tracked
+    bodies: list[BodyScore] = field(default_factory=list)
+    not_scored: list[str] = field(default_factory=list)  # objects of non-rigid kinds
+
+
+def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, list[int]]:
+    """Where the true motion carries each tracked point ([T, P, 3], world units; NaN for points nearest a non-rigid
+    object) and the object index of each point."""
+    vertices = truth.vertices
+    samples = [vertices.index_of(float(t)) for t in tracks.times]
+    first = torch.as_tensor(vertices.positions[samples[0]], dtype=torch.float64)
+    owner = torch.zeros(len(first), dtype=torch.long)
+    for index, obj in enumerate(truth.objects):
+        owner[obj.first_vertex:obj.first_vertex + obj.n_vertices] = index
+    start = tracks.positions[0]
+    objects = owner[torch.cdist(start, first).argmin(1)]
+    out = torch.full_like(tracks.positions, float("nan"))
+    for index, obj in enumerate(truth.objects):
+        rows = objects == index
+        if obj.kind not in RIGID_KINDS or not bool(rows.any()):
+            continue
+        own = slice(obj.first_vertex, obj.first_vertex + obj.n_vertices)
+        for k, sample in enumerate(samples):
+            later = torch.as_tensor(vertices.positions[sample][own], dtype=torch.float64)
+            rotation, shift = rigid_fit(first[own], later)
+            out[k, rows] = start[rows] @ rotation.T + shift
+    return out, objects.tolist()
+
+
+def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float | None, list[BodyScore], list[str]]:
+    """(pooled relative error, per-body scores, objects not scored) of ``tracks`` against ``truth``."""
+    expected, objects = true_positions(tracks, truth)
+    error = (tracks.positions - expected).norm(dim=-1)
+    travel = (expected - expected[0]).norm(dim=-1)
+    scored = tracks.known & torch.isfinite(error)
+    bodies = []
+    for bi in range(int(tracks.body.max()) + 1):
+        rows = tracks.body == bi
+        counts = torch.bincount(torch.tensor(objects)[rows], minlength=len(truth.objects))
+        main = int(counts.argmax())
+        mask = scored[:, rows]
+        body_error, body_travel = error[:, rows][mask], travel[:, rows][mask]
+        tracked = int(tracks.known[:, rows].all(dim=1).sum()) - 1
+        bodies.append(BodyScore(
+            body=bi, object=truth.objects[main].name if truth.objects[main].kind in RIGID_KINDS else "",
+            points=int(rows.sum()), on_object=float(counts[main]) / max(int(rows.sum()), 1), tracked_intervals=tracked,
+            fitted=float(tracks.found[:tracked, bi].float().mean()) if tracked > 0 else 0.0,
+            error=float(body_error.mean()) if len(body_error) else None,
+            relative=float(body_error.sum() / body_travel.sum()) if float(body_travel.sum()) > 0 else None,
+        ))
+    total = float(travel[scored].sum())
+    relative = float(error[scored].sum()) / total if total > 0 else None
+    not_scored = [o.name for o in truth.objects if o.kind not in RIGID_KINDS]
+    return relative, bodies, not_scored
+
+
+def run_rigid_tracks_bench(dataset: Path, seed: int = 42, out: Path | None = None) -> TrackBenchResult:
+    """Track the dataset's rigid bodies as a run with ``--optim.motion_start rigid_tracks --optim.seed SEED`` does
+    and score the tracks against its ground truth; print a table, write ``out`` (JSON) when given."""
+    config = apply_overrides(TrainConfig(), {"data.path": str(dataset)})
+    config = apply_preset(config, "auto", dataset_layout(Path(dataset)))
+    config = apply_overrides(config, {"flow.kind": "lpfm", "device": "cpu"})
+    truth = read_motion_gt(dataset)
+    scene = load_scene(config.data)
+    cache = open_flow_cache(scene, config.flow, Path("outputs/bench/flow_cache"))  # beside the dataset when writable
+    began = time.perf_counter()
+    tracks = track_rigid_bodies(cache, RigidTrackConfig(), torch.Generator().manual_seed(seed))
+    seconds = time.perf_counter() - began
+    relative, bodies, not_scored = score_tracks(tracks, truth)
+    result = TrackBenchResult(str(dataset), len(tracks.times) - 1, seconds, relative,
+                              float(tracks.known.float().mean()), bodies, not_scored)
+    print(format_result(result))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(asdict(result), indent=2))
+    return result
+
+
+def format_result(result: TrackBenchResult) -> str:
+    def num(x: float | None, digits: int = 3) -> str:
+        return "-" if x is None else f"{x:.{digits}f}"
+
+    lines = [f"rigid-body tracks of {result.dataset}: {len(result.bodies)} bodies, {result.intervals} training "
+             f"intervals, {result.seconds:.0f} s; relative position error {num(result.relative)} (0 = the truth, 1 = no better "
+             f"than standing still), {100 * result.tracked_share:.0f} % of (point, frame) entries tracked",
+             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative |",
+             "|---|---|---|---|---|---|---|---|"]
+    for b in result.bodies:
+        lines.append(f"| {b.body} | {b.object or '(not rigid)'} | {b.points} | {100 * b.on_object:.0f} % | "
+                     f"{b.tracked_intervals}/{result.intervals} | {100 * b.fitted:.0f} % | {num(b.error)} | "
+                     f"{num(b.relative)} |")
+    if result.not_scored:
+        lines.append("not scored (not rigid): " + ", ".join(result.not_scored))
+    return "\n".join(lines)

@@ -1,0 +1,61 @@
+"""bench rigid-tracks: tracks scored against a truth they are known to differ from by a set amount."""
+import pidg  # noqa: F401  (sets OMP_WAIT_POLICY before torch is imported)
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pidg.bench.rigid_tracks import format_result, score_tracks, TrackBenchResult
+from pidg.data.motion_gt import MotionGroundTruth, MotionObject, VertexMotion
+from pidg.flow.rigid_tracks import RigidTracks
+
+
+def truth_of_a_turning_cube_and_a_cloth(frames: int) -> MotionGroundTruth:
+    """A cube's 8 corners (rigid: turning 0.1 rad a frame about z while moving 0.2 along x) and 4 cloth vertices
+    (non-rigid) far from it."""
+    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)], dtype=np.float64)
+    cloth = np.array([[5.0, 0.0, 0.0], [6.0, 0.0, 0.0], [5.0, 1.0, 0.0], [6.0, 1.0, 0.0]])
+    positions = []
+    for k in range(frames):
+        c, s = math.cos(0.1 * k), math.sin(0.1 * k)
+        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        positions.append(np.concatenate([corners @ rotation.T + [0.2 * k, 0.0, 0.0], cloth + [0.0, 0.0, 0.3 * k * k]]))
+    times = np.linspace(0.0, 1.0, frames)
+    vertices = VertexMotion(times, np.stack(positions).astype(np.float32), np.zeros((frames, 12, 3), np.float32),
+                            np.zeros((0, 3), np.int64))
+    objects = [MotionObject("cube", "rigid", 0, 8), MotionObject("sheet", "cloth", 8, 4)]
+    return MotionGroundTruth(Path("."), 1.0 / (frames - 1), objects, vertices)
+
+
+def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
+    frames = 5
+    truth = truth_of_a_turning_cube_and_a_cloth(frames)
+    start = torch.tensor([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0], [0.0, 0.5, 0.5], [5.5, 0.5, 0.0]], dtype=torch.float64)
+    expected = []
+    for k in range(frames):
+        c, s = math.cos(0.1 * k), math.sin(0.1 * k)
+        rotation = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        expected.append(start @ rotation.T + torch.tensor([0.2 * k, 0.0, 0.0], dtype=torch.float64))
+    expected = torch.stack(expected)
+    off = expected.clone()
+    off[1:, :, 2] += 0.05  # every tracked position 0.05 off after the first frame
+    known = torch.ones(frames, 4, dtype=torch.bool)
+    known[4, 2] = False  # ... and body 1 lost before the last frame
+    body = torch.tensor([0, 0, 1, 2])
+    found = torch.ones(frames - 1, 3, dtype=torch.bool)
+    found[0, 0] = False
+    tracks = RigidTracks(torch.tensor(truth.vertices.times), off, known, body, torch.zeros(0, 3), found)
+    relative, bodies, not_scored = score_tracks(tracks, truth)
+    travel = (expected[:, :3] - expected[0, :3]).norm(dim=-1)
+    scored = known[:, :3]
+    assert math.isclose(relative, 0.05 * int(scored[1:].sum()) / float(travel[scored].sum()), rel_tol=1e-5)  # float32 vertices
+    assert not_scored == ["sheet"]
+    assert [b.object for b in bodies] == ["cube", "cube", ""]  # body 2 lies on the cloth: not scored
+    assert bodies[2].relative is None and bodies[2].error is None
+    assert bodies[0].tracked_intervals == 4 and bodies[1].tracked_intervals == 3
+    assert math.isclose(bodies[0].fitted, 0.75) and bodies[1].fitted == 1.0
+    assert math.isclose(bodies[0].error, 0.05 * 4 / 5, rel_tol=1e-5)  # 0 at the first frame, 0.05 at the four others
+    text = format_result(TrackBenchResult("scene", 4, 1.0, relative, 0.95, bodies, not_scored))
+    assert "| 2 | (not rigid) |" in text and "not scored (not rigid): sheet" in text
