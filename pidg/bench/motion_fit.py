@@ -136,10 +136,7 @@ def surface_samples(truth: MotionGroundTruth, count: int, generator: torch.Gener
 def _carried(truth: MotionGroundTruth, positions: Tensor, faces: Tensor, chosen: Tensor, weights: Tensor) -> SurfaceSamples:
     """Samples on the triangles ``faces[chosen]`` with barycentric ``weights`` [P, 3], through every sample time."""
     trajectories = (positions[:, faces[chosen]] * weights[None, :, :, None]).sum(2).float()
-    first = faces[chosen, 0]
-    owner = torch.full((len(chosen),), -1, dtype=torch.long)
-    for j, obj in enumerate(truth.objects):
-        owner[(first >= obj.first_vertex) & (first < obj.first_vertex + obj.n_vertices)] = j
+    owner = truth.vertex_objects()[faces[chosen, 0]]  # the object of each sample's triangle
     return SurfaceSamples(trajectories, owner, torch.from_numpy(truth.vertices.times).float())
 
 

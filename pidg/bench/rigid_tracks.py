@@ -57,17 +57,14 @@ class TrackBenchResult:
     not_scored: list[str] = field(default_factory=list)  # objects of non-rigid kinds
 
 
-def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, list[int]]:
+def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, Tensor]:
     """Where the true motion carries each tracked point ([T, P, 3], world units; NaN for points nearest a non-rigid
     object) and the object index of each point."""
     vertices = truth.vertices
     samples = [vertices.index_of(float(t)) for t in tracks.times]
     first = torch.as_tensor(vertices.positions[samples[0]], dtype=torch.float64)
-    owner = torch.zeros(len(first), dtype=torch.long)
-    for index, obj in enumerate(truth.objects):
-        owner[obj.first_vertex:obj.first_vertex + obj.n_vertices] = index
     start = tracks.positions[0]
-    objects = owner[torch.cdist(start, first).argmin(1)]
+    objects = truth.vertex_objects(unowned=0)[torch.cdist(start, first).argmin(1)]
     out = torch.full_like(tracks.positions, float("nan"))
     for index, obj in enumerate(truth.objects):
         rows = objects == index
@@ -78,7 +75,7 @@ def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tenso
             later = torch.as_tensor(vertices.positions[sample][own], dtype=torch.float64)
             rotation, shift = rigid_fit(first[own], later)
             out[k, rows] = start[rows] @ rotation.T + shift
-    return out, objects.tolist()
+    return out, objects
 
 
 def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float | None, list[BodyScore], list[str]]:
@@ -90,7 +87,7 @@ def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float |
     bodies = []
     for bi in range(int(tracks.body.max()) + 1):
         rows = tracks.body == bi
-        counts = torch.bincount(torch.tensor(objects)[rows], minlength=len(truth.objects))
+        counts = torch.bincount(objects[rows], minlength=len(truth.objects))
         main = int(counts.argmax())
         mask = scored[:, rows]
         body_error, body_travel = error[:, rows][mask], travel[:, rows][mask]

@@ -103,6 +103,13 @@ class MotionGroundTruth:
     def flow_path(self, key: str) -> Path:
         return self.root / "flow" / f"{key}.npz"
 
+    def vertex_objects(self, unowned: int = -1) -> Tensor:
+        """[V] long: the index in ``objects`` of each vertex's object (``unowned`` for a vertex in none)."""
+        owner = torch.full((self.vertices.positions.shape[1],), unowned, dtype=torch.long)
+        for index, obj in enumerate(self.objects):
+            owner[obj.first_vertex:obj.first_vertex + obj.n_vertices] = index
+        return owner
+
     def frame_flow(self, key: str) -> FrameFlow:
         """The flow of the image whose ``Frame.name`` is ``key``; DatasetError naming the file when it is missing
         or malformed."""

@@ -595,9 +595,7 @@ def _tracking_scores(
     truth_at = torch.from_numpy(vertices.positions[sample_of]).to(device)  # [T, V, 3]
     error_sum = travel_sum = seen_error = seen_travel = 0.0
     samples = matched = seen_matches = 0
-    owner = torch.zeros(vertices.positions.shape[1], dtype=torch.long, device=device)  # vertex -> object
-    for i, obj in enumerate(truth.objects):
-        owner[obj.first_vertex : obj.first_vertex + obj.n_vertices] = i
+    owner = truth.vertex_objects(unowned=0).to(device)  # vertex -> object
     object_sums = torch.zeros(len(truth.objects), 2, dtype=torch.float64, device=device)  # error, travel
     per_anchor: dict[float, dict[str, float | None]] = {}
     for t_a, (verts, gauss, seen) in matches.items():

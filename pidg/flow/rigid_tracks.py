@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from pidg.data.scene import Frame
-from pidg.flow.decomposition import unproject_points
+from pidg.flow.decomposition import backproject, unproject_points
 from pidg.flow.optical_flow import pixel_centers
 from pidg.flow.preprocess import FlowCache, FlowPair
 
@@ -231,8 +231,7 @@ def moving_surface(frame: Frame) -> tuple[Tensor, Tensor]:
     (world, float64; a normal from the lifted neighbours' differences, zero on the surface's outline, where a
     neighbour is off it)."""
     depth = frame.depth.double()
-    h, w = depth.shape
-    points = unproject_points(pixel_centers(h, w, torch.float64), depth, frame.camera)  # [H, W, 3]
+    points = backproject(depth, frame.camera)  # [H, W, 3]
     use = frame.mask & (depth > 0)
     inner = torch.zeros_like(use)
     inner[1:-1, 1:-1] = use[1:-1, 1:-1] & use[:-2, 1:-1] & use[2:, 1:-1] & use[1:-1, :-2] & use[1:-1, 2:]
@@ -313,22 +312,22 @@ def _flow_motion(
     return None, owned & (distance < 3 * reach)
 
 
-def _claimed_surface(
+def _surface_owners(
     x: Tensor, body: Tensor, alive: Tensor, last: dict[int, tuple[Tensor, Tensor, float]], pair: FlowPair,
-) -> tuple[tuple[Tensor, Tensor], Tensor]:
-    """Frame t+1's moving surface (points and normals, :func:`moving_surface`) and the body each of its points is
-    nearest to [M] once every tracked body is carried at its last velocity (colliding bodies: a body's surface fit
-    must not take its neighbour's surface)."""
-    surface = moving_surface(pair.frame1)
+    surface: Tensor,
+) -> Tensor:
+    """The body each point of frame t+1's moving surface ``surface`` [M, 3] is nearest to [M] once every tracked body
+    is carried at its last velocity (-1 when none is tracked; colliding bodies: a body's surface fit must not take its
+    neighbour's surface)."""
     guess = x.clone()
     for bi, (rotation, shift, dt_last) in last.items():
         rows = body == bi
         turn, drift = _constant_velocity(x[rows], rotation, shift, pair.dt / dt_last)
         guess[rows] = x[rows] @ turn.T + drift
     tracked = alive[body]
-    if not len(surface[0]) or not bool(tracked.any()):
-        return surface, torch.full((len(surface[0]),), -1, dtype=torch.long)
-    return surface, body[tracked][_nearest(surface[0], guess[tracked])[1]]
+    if not len(surface) or not bool(tracked.any()):
+        return torch.full((len(surface),), -1, dtype=torch.long)
+    return body[tracked][_nearest(surface, guess[tracked])[1]]
 
 
 def _best_motion(
@@ -354,24 +353,24 @@ def _best_motion(
 
 
 def _later_surfaces(
-    positions: Tensor, known: Tensor, body: Tensor, frames: list[Frame], link: float, per_frame: int,
+    positions: Tensor, known: Tensor, body: Tensor, surfaces: list[Tensor], link: float, per_frame: int,
     generator: torch.Generator,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Points of the later frames' moving surfaces on tracked bodies, with their tracks: a surface point of frame k
+    """Points of the later frames' moving surfaces ``surfaces`` (frame k's [M_k, 3], :func:`moving_surface`; the
+    first frame's unused) on tracked bodies, with their tracks: a surface point of frame k
     belongs to the body of its nearest tracked point when it is connected to tracked points (within ``link``, through
     other surface points); it is carried back to the first frame by the inverse of that body's motion to frame k, then
     along the body's motion to every frame. Returns (positions [T, Q, 3], known [T, Q], body [Q])."""
-    n_bodies = int(body.max()) + 1
+    n_bodies, n_frames = int(body.max()) + 1, len(positions)
     poses = {}  # (frame, body) -> the body's motion from the first frame (Kabsch of its tracked points: exact)
-    for k in range(len(frames)):
+    for k in range(n_frames):
         for bi in range(n_bodies):
             rows = (body == bi) & known[k]
             if int(rows.sum()) >= 3:
                 poses[k, bi] = rigid_fit(positions[0, rows], positions[k, rows])
     added, owners = [], []
-    for k in range(1, len(frames)):
-        tracked = known[k]
-        surface = moving_surface(frames[k])[0]
+    for k in range(1, n_frames):
+        tracked, surface = known[k], surfaces[k]
         if not bool(tracked.any()) or not len(surface):
             continue
         surface = surface[torch.randperm(len(surface), generator=generator)[:4 * per_frame]]
@@ -388,9 +387,9 @@ def _later_surfaces(
     if not added:
         return positions[:, :0], known[:, :0], body[:0]
     canonical, owner = torch.stack(added), torch.tensor(owners, dtype=torch.long)
-    out = canonical.expand(len(frames), -1, -1).clone()
-    out_known = torch.zeros(len(frames), len(owner), dtype=torch.bool)
-    for k in range(len(frames)):
+    out = canonical.expand(n_frames, -1, -1).clone()
+    out_known = torch.zeros(n_frames, len(owner), dtype=torch.bool)
+    for k in range(n_frames):
         for bi in torch.unique(owner).tolist():
             if (k, bi) in poses:
                 rows = owner == bi
@@ -432,6 +431,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
     gaps = [0] * n_bodies
     last: dict[int, tuple[Tensor, Tensor, float]] = {}  # each body's last motion and its interval's length
     positions, known, found = [x], [alive[body]], []
+    surfaces = [first]  # each frame's moving surface (the first's unused by the later-surface points)
     for k in range(len(cache)):
         pair = cache.pair(k)
         a, b = lifted_pairs(pair)
@@ -439,7 +439,9 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
         if len(a):
             distance, nearest = _nearest(a, x)
             owner = body[nearest]
-        surface, claimed = _claimed_surface(x, body, alive, last, pair)
+        surface = moving_surface(pair.frame1)
+        surfaces.append(surface[0])
+        claimed = _surface_owners(x, body, alive, last, pair, surface[0])
         moved = x.clone()
         found_k = torch.zeros(n_bodies, dtype=torch.bool)
         for bi in range(n_bodies):
@@ -472,7 +474,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
         known.append(alive[body])
         found.append(found_k)
     positions, known = torch.stack(positions), torch.stack(known)
-    later = _later_surfaces(positions, known, body, frames, link, config.later_points, generator)
+    later = _later_surfaces(positions, known, body, surfaces, link, config.later_points, generator)
     times = torch.tensor([f.time for f in frames], dtype=torch.float64)
     return RigidTracks(times, torch.cat([positions, later[0]], 1), torch.cat([known, later[1]], 1),
                        torch.cat([body, later[2]]), static, torch.stack(found))
