@@ -7,9 +7,10 @@ where the true motion carries it: its object is the one whose true vertex lies n
 that object's true motion from the first training frame to each later one is the Kabsch fit of its vertices (exact
 for a rigid or keyframed object; objects of other kinds, cloth and soft bodies, are not scored). Figures per body
 and in all: the position error (world units) over the frames where the body is tracked, as a share of the distance
-the truth carries the points from the first frame (0 = right, 1 = as far off as standing still); how many training
-intervals the body was tracked through; and the share of them in which a motion was fitted (the others carried at
-rest or at constant velocity).
+the truth carries the points from the first frame (0 = right, 1 = as far off as standing still); the step error, each
+point's move from one training frame to the next against the true move (what a flow sees), as a share of the true
+moves (0 = right, 1 = as far off as not moving); how many training intervals the body was tracked through; and the
+share of them in which a motion was fitted (the others carried at rest or at constant velocity).
 """
 from __future__ import annotations
 
@@ -44,6 +45,7 @@ class BodyScore:
     fitted: float  # share of those in which a motion was fitted (not carried at rest or constant velocity)
     error: float | None  # mean position error over the tracked frames, world units
     relative: float | None  # pooled error / pooled true travel from the first frame
+    step_relative: float | None  # pooled error of the frame-to-frame moves / pooled true moves
 
 
 @dataclass
@@ -52,6 +54,7 @@ class TrackBenchResult:
     intervals: int
     seconds: float  # the tracking's wall time on this machine
     relative: float | None  # over every scored point and tracked frame
+    step_relative: float | None  # over every scored point and tracked interval
     tracked_share: float  # share of (point, frame) entries tracked
     bodies: list[BodyScore] = field(default_factory=list)
     not_scored: list[str] = field(default_factory=list)  # objects of non-rigid kinds
@@ -78,12 +81,22 @@ def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tenso
     return out, objects
 
 
-def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float | None, list[BodyScore], list[str]]:
-    """(pooled relative error, per-body scores, objects not scored) of ``tracks`` against ``truth``."""
+def _share(error: Tensor, truth: Tensor) -> float | None:
+    """sum(error) / sum(truth), None when the truth sums to 0."""
+    total = float(truth.sum())
+    return float(error.sum()) / total if total > 0 else None
+
+
+def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float | None, float | None, list[BodyScore], list[str]]:
+    """(pooled relative position error, pooled relative step error, per-body scores, objects not scored) of
+    ``tracks`` against ``truth``."""
     expected, objects = true_positions(tracks, truth)
     error = (tracks.positions - expected).norm(dim=-1)
     travel = (expected - expected[0]).norm(dim=-1)
     scored = tracks.known & torch.isfinite(error)
+    step_error = ((tracks.positions[1:] - tracks.positions[:-1]) - (expected[1:] - expected[:-1])).norm(dim=-1)
+    step = (expected[1:] - expected[:-1]).norm(dim=-1)
+    step_scored = scored[1:] & scored[:-1]
     bodies = []
     for bi in range(int(tracks.body.max()) + 1):
         rows = tracks.body == bi
@@ -97,12 +110,11 @@ def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float |
             points=int(rows.sum()), on_object=float(counts[main]) / max(int(rows.sum()), 1), tracked_intervals=tracked,
             fitted=float(tracks.found[:tracked, bi].float().mean()) if tracked > 0 else 0.0,
             error=float(body_error.mean()) if len(body_error) else None,
-            relative=float(body_error.sum() / body_travel.sum()) if float(body_travel.sum()) > 0 else None,
+            relative=_share(body_error, body_travel),
+            step_relative=_share(step_error[:, rows][step_scored[:, rows]], step[:, rows][step_scored[:, rows]]),
         ))
-    total = float(travel[scored].sum())
-    relative = float(error[scored].sum()) / total if total > 0 else None
     not_scored = [o.name for o in truth.objects if o.kind not in RIGID_KINDS]
-    return relative, bodies, not_scored
+    return _share(error[scored], travel[scored]), _share(step_error[step_scored], step[step_scored]), bodies, not_scored
 
 
 def run_rigid_tracks_bench(dataset: Path, seed: int = 42, out: Path | None = None) -> TrackBenchResult:
@@ -117,8 +129,8 @@ def run_rigid_tracks_bench(dataset: Path, seed: int = 42, out: Path | None = Non
     began = time.perf_counter()
     tracks = track_rigid_bodies(cache, RigidTrackConfig(), torch.Generator().manual_seed(seed))
     seconds = time.perf_counter() - began
-    relative, bodies, not_scored = score_tracks(tracks, truth)
-    result = TrackBenchResult(str(dataset), len(tracks.times) - 1, seconds, relative,
+    relative, step_relative, bodies, not_scored = score_tracks(tracks, truth)
+    result = TrackBenchResult(str(dataset), len(tracks.times) - 1, seconds, relative, step_relative,
                               float(tracks.known.float().mean()), bodies, not_scored)
     print(format_result(result))
     if out is not None:
@@ -132,14 +144,15 @@ def format_result(result: TrackBenchResult) -> str:
         return "-" if x is None else f"{x:.{digits}f}"
 
     lines = [f"rigid-body tracks of {result.dataset}: {len(result.bodies)} bodies, {result.intervals} training "
-             f"intervals, {result.seconds:.0f} s; relative position error {num(result.relative)} (0 = the truth, 1 = no better "
+             f"intervals, {result.seconds:.0f} s; relative position error {num(result.relative)}, step error "
+             f"{num(result.step_relative)} (0 = the truth, 1 = no better "
              f"than standing still), {100 * result.tracked_share:.0f} % of (point, frame) entries tracked",
-             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative | step |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for b in result.bodies:
         lines.append(f"| {b.body} | {b.object or '(not rigid)'} | {b.points} | {100 * b.on_object:.0f} % | "
                      f"{b.tracked_intervals}/{result.intervals} | {100 * b.fitted:.0f} % | {num(b.error)} | "
-                     f"{num(b.relative)} |")
+                     f"{num(b.relative)} | {num(b.step_relative)} |")
     if result.not_scored:
         lines.append("not scored (not rigid): " + ", ".join(result.not_scored))
     return "\n".join(lines)

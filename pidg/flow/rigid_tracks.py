@@ -115,27 +115,28 @@ def lifted_pairs(pair: FlowPair, moving: bool = True) -> tuple[Tensor, Tensor]:
 
 
 def rigid_fit(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """The rotation R [3, 3] and translation t [3] that carry ``a`` [N, 3] onto ``b`` in least squares (Kabsch, no
-    reflection): b ~ a @ R.T + t."""
-    ca, cb = a.mean(0), b.mean(0)
-    u, _, vh = torch.linalg.svd((a - ca).T @ (b - cb))
-    sign = torch.sign(torch.linalg.det(vh.T @ u.T))
-    rotation = vh.T @ torch.diag(torch.stack([torch.ones_like(sign), torch.ones_like(sign), sign])) @ u.T
-    return rotation, cb - ca @ rotation.T
+    """The rotation R [..., 3, 3] and translation t [..., 3] that carry ``a`` [..., N, 3] onto ``b`` in least squares
+    (Kabsch, no reflection): b ~ a @ R.T + t; leading dimensions are independent fits (one batched SVD)."""
+    ca, cb = a.mean(-2, keepdim=True), b.mean(-2, keepdim=True)
+    u, _, vh = torch.linalg.svd((a - ca).transpose(-1, -2) @ (b - cb))
+    v, ut = vh.transpose(-1, -2), u.transpose(-1, -2)
+    sign = torch.sign(torch.linalg.det(v @ ut))
+    flip = torch.stack([torch.ones_like(sign), torch.ones_like(sign), sign], dim=-1)
+    rotation = (v * flip[..., None, :]) @ ut
+    return rotation, (cb - ca @ rotation.transpose(-1, -2)).squeeze(-2)
 
 
 def ransac_rigid(a: Tensor, b: Tensor, inlier: float, iterations: int, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor] | None:
-    """The rigid motion most pairs of ``a`` -> ``b`` agree with: the best of ``iterations`` three-pair draws, refitted to
-    its inliers until they settle; (R, t, inlier mask), or None with fewer than three pairs."""
+    """The rigid motion most pairs of ``a`` -> ``b`` agree with: the best of ``iterations`` three-pair draws (the first
+    of the most inliers; all draws fitted and counted at once), refitted to its inliers until they settle;
+    (R, t, inlier mask), or None with fewer than three pairs."""
     if len(a) < 3:
         return None
     draws = torch.stack([torch.randperm(len(a), generator=generator)[:3] for _ in range(iterations)])
-    best = None
-    for rows in draws:
-        rotation, shift = rigid_fit(a[rows], b[rows])
-        inliers = (a @ rotation.T + shift - b).norm(dim=1) < inlier
-        if best is None or int(inliers.sum()) > int(best.sum()):
-            best = inliers
+    rotations, shifts = rigid_fit(a[draws], b[draws])  # [K, 3, 3], [K, 3]
+    counts = ((a @ rotations.transpose(-1, -2) + shifts[:, None] - b).norm(dim=-1) < inlier).sum(1)
+    k = int(counts.argmax())  # the first draw with the most inliers
+    best = (a @ rotations[k].T + shifts[k] - b).norm(dim=1) < inlier
     if int(best.sum()) < 3:
         return None
     for _ in range(3):

@@ -47,15 +47,21 @@ def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
     found = torch.ones(frames - 1, 3, dtype=torch.bool)
     found[0, 0] = False
     tracks = RigidTracks(torch.tensor(truth.vertices.times), off, known, body, torch.zeros(0, 3), found)
-    relative, bodies, not_scored = score_tracks(tracks, truth)
+    relative, step_relative, bodies, not_scored = score_tracks(tracks, truth)
     travel = (expected[:, :3] - expected[0, :3]).norm(dim=-1)
     scored = known[:, :3]
     assert math.isclose(relative, 0.05 * int(scored[1:].sum()) / float(travel[scored].sum()), rel_tol=1e-5)  # float32 vertices
+    # the moves: only the first is off (by 0.05), on the three scored points; the others are exact
+    steps = (expected[1:, :3] - expected[:-1, :3]).norm(dim=-1)
+    stepped = scored[1:] & scored[:-1]
+    assert math.isclose(step_relative, 0.05 * 3 / float(steps[stepped].sum()), rel_tol=1e-5)
+    assert math.isclose(bodies[1].step_relative, 0.05 / float(steps[:3, 2].sum()), rel_tol=1e-5)  # lost at the last frame
     assert not_scored == ["sheet"]
     assert [b.object for b in bodies] == ["cube", "cube", ""]  # body 2 lies on the cloth: not scored
     assert bodies[2].relative is None and bodies[2].error is None
     assert bodies[0].tracked_intervals == 4 and bodies[1].tracked_intervals == 3
     assert math.isclose(bodies[0].fitted, 0.75) and bodies[1].fitted == 1.0
     assert math.isclose(bodies[0].error, 0.05 * 4 / 5, rel_tol=1e-5)  # 0 at the first frame, 0.05 at the four others
-    text = format_result(TrackBenchResult("scene", 4, 1.0, relative, 0.95, bodies, not_scored))
+    assert bodies[2].step_relative is None
+    text = format_result(TrackBenchResult("scene", 4, 1.0, relative, step_relative, 0.95, bodies, not_scored))
     assert "| 2 | (not rigid) |" in text and "not scored (not rigid): sheet" in text

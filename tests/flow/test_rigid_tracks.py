@@ -47,6 +47,27 @@ def test_rigid_fit_recovers_a_rotation_and_translation():
     assert torch.linalg.det(rigid_fit(a, a * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))[0]) > 0  # no reflection
 
 
+def test_rigid_fit_batched_fits_each_set_on_its_own():
+    """Leading dimensions are independent fits (RANSAC fits all its draws at once): each equals its own fit, and the
+    exact motions come back, a reflection in one set not reaching the others."""
+    gen = torch.Generator().manual_seed(3)
+    a = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)  # four minimal three-point sets
+    rotations = torch.stack([random_rotation(gen) for _ in range(4)])
+    shifts = torch.randn(4, 3, generator=gen, dtype=torch.float64)
+    b = a @ rotations.transpose(-1, -2) + shifts[:, None]
+    b[2] = a[2] * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64)  # a mirror: the best proper rotation instead
+    r, t = rigid_fit(a, b)
+    assert r.shape == (4, 3, 3) and t.shape == (4, 3)
+    for k in range(4):
+        rk, tk = rigid_fit(a[k], b[k])
+        torch.testing.assert_close(r[k], rk, atol=1e-12, rtol=0)
+        torch.testing.assert_close(t[k], tk, atol=1e-12, rtol=0)
+        assert torch.linalg.det(r[k]) > 0
+    for k in (0, 1, 3):
+        torch.testing.assert_close(r[k], rotations[k], atol=1e-10, rtol=0)
+        torch.testing.assert_close(t[k], shifts[k], atol=1e-10, rtol=0)
+
+
 def test_ransac_finds_the_motion_most_pairs_agree_with():
     gen = torch.Generator().manual_seed(1)
     a = torch.randn(200, 3, generator=gen, dtype=torch.float64)
