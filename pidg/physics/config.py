@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 from pidg.config_tools import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, validate_config
 
 PhysicsKind = Literal["none", "cmr"]
+KinematicTarget = Literal["central", "forward"]
 
 
 @dataclass
@@ -42,6 +43,11 @@ class PhysicsConfig:
     """Weight of the particle-velocity consistency L_kin (pidg.physics.consistency): the material field's v at
     ``samples`` random particles against the deformation's own velocity there (detached), in box half-extents per
     training frame. An extension, not in the paper; applied with L_CMR (same start)."""
+    kinematic_target: KinematicTarget = "central"
+    """What L_kin teaches v: central, the deformation's velocity at t (its difference over half a training-frame
+    interval either side: the particles' velocity, which the midpoint velocity flow integrates); forward, its move over
+    the next training-frame interval (x(t + dt) - x(t)) / dt, what the paper's first-order (euler) velocity flow
+    x + v dt must match where a body turns or accelerates."""
     density: Annotated[float, POSITIVE] = 1.0
     """rho, in mass per world volume (paper: 1)."""
     detach_positions: bool = False

@@ -11,6 +11,9 @@ with v in world units per physics time unit, h half a training-frame interval, t
 training-frame interval in physics time, and L the material
 field's box half-extent per axis: the error in box half-extents per training frame, unitless and the same for any
 ``--physics.time_scale``. The deformation's velocity is a target (detached): the term teaches v, not the motion.
+``--physics.kinematic_target forward`` replaces the central difference by the move over the next training-frame
+interval, (x_i(t + dt) - x_i(t)) / dt, the velocity the paper's first-order velocity flow x + v dt needs where a body
+turns or accelerates.
 """
 from __future__ import annotations
 
@@ -25,6 +28,14 @@ def particle_velocity(model: DynamicGaussians, t: float, rows: Tensor | None = N
     training-frame interval either side, in world units per physics time unit (tau = t * S: dx/dtau = dx/dt / S)."""
     time_axis = model.time_axis
     return model.motion_velocity(t, 0.5 * time_axis.frame_interval, rows) / time_axis.physics_per_dataset
+
+
+def particle_step_velocity(model: DynamicGaussians, t: float, means: Tensor, rows: Tensor | None = None) -> Tensor:
+    """The deformation's move [N, 3] of the particles ``rows`` (all: None), at ``means`` at dataset time ``t``, over
+    the next training-frame interval, as a velocity in world units per physics time unit: (x(t + dt) - x(t)) / dt."""
+    time_axis = model.time_axis
+    dt = time_axis.frame_interval
+    return (model.at(t + dt, rows=rows).means - means) / time_axis.to_physics(dt)
 
 
 def velocity_mismatch(v: Tensor, target: Tensor, time_axis: TimeAxis, half_extent: Tensor) -> Tensor:

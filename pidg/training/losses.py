@@ -40,7 +40,14 @@ from pidg.flow import (
 from pidg.metrics import ssim
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
-from pidg.physics import PhysicsConfig, cmr_loss, particle_velocity, sample_rows, velocity_mismatch
+from pidg.physics import (
+    PhysicsConfig,
+    cmr_loss,
+    particle_step_velocity,
+    particle_velocity,
+    sample_rows,
+    velocity_mismatch,
+)
 from pidg.render import OPAQUE_ALPHA, PreparedRender, RenderOutput
 from pidg.training.config import TrainConfig
 from pidg.training.fused_ssim import fused_ssim
@@ -247,9 +254,13 @@ class ParticleVelocityLoss(_PhysicsParticleTerm):
         picked = sample_rows(candidates.numel(), self.config.samples, self.generator)
         rows = (candidates if picked is None else candidates[picked]).to(inputs.state.means.device)
         t = inputs.frame.time
+        means = inputs.state.means.detach()[rows]
         with torch.no_grad():
-            target = particle_velocity(model, t, rows)
-        v = model.velocities(t, means=inputs.state.means.detach()[rows], rows=rows)
+            if self.config.kinematic_target == "forward":
+                target = particle_step_velocity(model, t, means, rows)
+            else:
+                target = particle_velocity(model, t, rows)
+        v = model.velocities(t, means=means, rows=rows)
         mismatch = velocity_mismatch(v, target, model.time_axis, field.normalize.half_extent)
         return self.config.lambda_kinematic * mismatch, {"kinematic": float(mismatch.detach())}
 

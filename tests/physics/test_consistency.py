@@ -70,3 +70,42 @@ def test_the_term_teaches_v_the_deformation_velocity_and_leaves_the_deformation_
         mismatch().backward()
         optimizer.step()
     assert float(mismatch().detach()) < 0.5 * float(before.detach())
+
+
+def _trained_term(tmp_path, **physics):
+    """A 20-step run on a small procedural scene with L_kin (``physics`` options on top) and its L_kin term."""
+    data_dir = write_procedural_dataset(
+        ProceduralSceneConfig(n_train=6, n_test=1, width=32, height=32, n_gaussians=800, n_init_points=300), tmp_path / "data"
+    )
+    cfg = apply_preset(TrainConfig(data=DataConfig(path=data_dir, progress=False)), "cpu")
+    cfg.physics = dataclasses.replace(cfg.physics, kind="cmr", samples=4096, lambda_kinematic=1.0, **physics)
+    cfg.densify = dataclasses.replace(cfg.densify, start=10_000)
+    cfg.optim = dataclasses.replace(cfg.optim, iterations=20)
+    cfg.output = dataclasses.replace(cfg.output, dir=tmp_path / "run", checkpoint_every=0, progress=False, preview_every=0)
+    trainer = Trainer(cfg, load_scene(cfg.data))
+    for _ in range(20):
+        trainer.train_step()
+    return trainer, next(t for t in trainer.loss_terms if t.name == "kinematic")
+
+
+def _independent_mismatch(model, t: float, target) -> torch.Tensor:
+    """L_kin at dataset time t against ``target`` (world units per dataset time), written out from the model's parts."""
+    with torch.no_grad():
+        v = model.material_field(model.at(t).means, t, model.gaussians.particle_index)[0]
+        return velocity_mismatch(v, target / model.time_axis.physics_per_dataset, model.time_axis,
+                                 model.material_field.normalize.half_extent)
+
+
+def test_forward_target_is_the_move_over_the_next_training_interval(tmp_path):
+    """``kinematic_target forward``: v against (x(t + dt) - x(t)) / dt, dt one training-frame interval (what the
+    first-order velocity flow x + v dt must match), not the central difference."""
+    trainer, term = _trained_term(tmp_path, kinematic_target="forward")
+    model, frame = trainer.model, trainer.scene.train[2]
+    dt = model.time_axis.frame_interval
+    state = model.at(frame.time)
+    loss, _ = term.loss(StepInputs(0, frame, model, state, True), model.render_state(state, frame.camera), None)
+    with torch.no_grad():
+        forward = (model.at(frame.time + dt).means - state.means) / dt
+        central = (model.at(frame.time + 0.5 * dt).means - model.at(frame.time - 0.5 * dt).means) / dt
+    torch.testing.assert_close(loss.detach(), _independent_mismatch(model, frame.time, forward), rtol=1e-4, atol=1e-7)
+    assert not torch.allclose(forward, central, rtol=1e-3, atol=0)  # the two targets differ here
