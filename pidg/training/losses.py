@@ -234,8 +234,9 @@ class MomentumResidualLoss(_PhysicsParticleTerm):
 
 class ParticleVelocityLoss(_PhysicsParticleTerm):
     """lambda_kinematic * L_kin (``pidg.physics.consistency``): the material field's v at random particles against
-    the deformation's central-difference velocity there, so v follows the particles everywhere, not only where the
-    flow loss sees them (an extension; off by default)."""
+    the deformation's velocity there (``PhysicsConfig.kinematic_target``: central difference, or the move over the
+    next training interval), so v follows the particles everywhere, not only where the flow loss sees them (an
+    extension; off by default)."""
 
     name = "kinematic"
 
