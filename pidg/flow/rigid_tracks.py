@@ -314,16 +314,14 @@ def _flow_motion(
 
 
 def _surface_owners(
-    x: Tensor, body: Tensor, alive: Tensor, last: dict[int, tuple[Tensor, Tensor, float]], pair: FlowPair,
-    surface: Tensor,
+    x: Tensor, body: Tensor, alive: Tensor, continued: dict[int, tuple[Tensor, Tensor]], surface: Tensor,
 ) -> Tensor:
     """The body each point of frame t+1's moving surface ``surface`` [M, 3] is nearest to [M] once every tracked body
-    is carried at its last velocity (-1 when none is tracked; colliding bodies: a body's surface fit must not take its
-    neighbour's surface)."""
+    is carried by its motion in ``continued`` (its last velocity; -1 when none is tracked; colliding bodies: a body's
+    surface fit must not take its neighbour's surface)."""
     guess = x.clone()
-    for bi, (rotation, shift, dt_last) in last.items():
+    for bi, (turn, drift) in continued.items():
         rows = body == bi
-        turn, drift = _constant_velocity(x[rows], rotation, shift, pair.dt / dt_last)
         guess[rows] = x[rows] @ turn.T + drift
     tracked = alive[body]
     if not len(surface) or not bool(tracked.any()):
@@ -429,6 +427,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
     static = unproject_points(pixels[pick], f0.depth.double()[still][pick], f0.camera)
 
     x, alive = start.clone(), torch.ones(n_bodies, dtype=torch.bool)
+    rest = (torch.eye(3, dtype=x.dtype), torch.zeros(3, dtype=x.dtype))
     gaps = [0] * n_bodies
     last: dict[int, tuple[Tensor, Tensor, float]] = {}  # each body's last motion and its interval's length
     positions, known, found = [x], [alive[body]], []
@@ -442,7 +441,9 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
             owner = body[nearest]
         surface = moving_surface(pair.frame1)
         surfaces.append(surface[0])
-        claimed = _surface_owners(x, body, alive, last, pair, surface[0])
+        continued = {bi: _constant_velocity(x[body == bi], rotation, shift, pair.dt / dt_last)  # the last velocity
+                     for bi, (rotation, shift, dt_last) in last.items()}
+        claimed = _surface_owners(x, body, alive, continued, surface[0])
         moved = x.clone()
         found_k = torch.zeros(n_bodies, dtype=torch.bool)
         for bi in range(n_bodies):
@@ -451,10 +452,9 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
             rows = body == bi
             flow_motion, mine = _flow_motion(a, b, (owner == bi), distance, reach, inlier, config, generator)
             starts = [] if flow_motion is None else [flow_motion]  # motions to refine from: the flow's, ...
-            if bi in last:  # ... constant velocity, ...
-                rotation, shift, dt_last = last[bi]
-                starts.append(_constant_velocity(x[rows], rotation, shift, pair.dt / dt_last))
-            starts.append((torch.eye(3, dtype=x.dtype), torch.zeros(3, dtype=x.dtype)))  # ... and rest
+            if bi in continued:  # ... constant velocity, ...
+                starts.append(continued[bi])
+            starts.append(rest)  # ... and rest
             own_surface = (surface[0][claimed == bi], surface[1][claimed == bi])
             motion, through = _best_motion(x[rows], starts, a[mine], b[mine], own_surface, pair.frame1, reach, inlier,
                                            config.min_pairs)
@@ -462,11 +462,10 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
                 gaps[bi], last[bi], found_k[bi] = 0, (*motion, pair.dt), True
                 moved[rows] = x[rows] @ motion[0].T + motion[1]
             elif _came_to_rest(x[rows], pair.frame0, config.min_pairs):
-                gaps[bi], last[bi] = 0, (torch.eye(3, dtype=x.dtype), torch.zeros(3, dtype=x.dtype), pair.dt)
-            elif bi in last and gaps[bi] < config.max_gap:
+                gaps[bi], last[bi] = 0, (*rest, pair.dt)
+            elif bi in continued and gaps[bi] < config.max_gap:
                 gaps[bi] += 1
-                rotation, shift, dt_last = last[bi]
-                turn, drift = _constant_velocity(x[rows], rotation, shift, pair.dt / dt_last)
+                turn, drift = continued[bi]
                 moved[rows] = x[rows] @ turn.T + drift
             else:
                 alive[bi] = False
