@@ -60,7 +60,10 @@ carried a short way, then handed on) moves the texture without turning it, and f
 training pair (:func:`pidg.flow.model_flow_target`: the optical flow minus the camera flow of frame t+1's depth, the
 dataset's or the model's own render, inside the motion mask), scored against the true flow of frame t on the pixels
 it supervises that the truth calls dynamic: the best the flow loss alone can teach (:func:`evaluate_flow_target`).
-Pairs whose t+1 is not t + ``frame_interval`` (a held-out image between them) are skipped.
+Beside it the model's motion and velocity flows over the same pairs, against that target (how closely the model
+follows what it is taught) and against the truth, on those pixels and on the true dynamic surface the target leaves
+out: a flow error splits into the target's and the model's distance from it. Pairs whose t+1 is not t +
+``frame_interval`` (a held-out image between them) are skipped.
 """
 from __future__ import annotations
 
@@ -200,8 +203,21 @@ class TargetScores:
     off_dynamic_flow: float | None  # mean |target| on them (the truth there: 0 or no surface)
     skipped: list[str] = field(default_factory=list)  # pairs (first frame) spanning more than one frame interval
     #: per scored pair: first frame's name and dataset time, its scored pixels and their target / zero-motion EPE in
-    #: pixels (None: no pixel scored): where in the recording the optical flow misleads the flow loss (a collision, a fast phase)
+    #: pixels (None: no pixel scored): where in the recording the optical flow misleads the flow loss (a collision, a
+    #: fast phase); and the model's motion / velocity flow against the target there (motion_vs_target_epe,
+    #: velocity_vs_target_epe): where the model does not follow what it is taught
     per_pair: list[dict[str, Any]] = field(default_factory=list)
+    # The model's flows over the same pairs (t to t+1 in camera t, the run's velocity rule). Its error against the truth
+    # on the scored pixels is at most target_epe + its distance from the target: the two parts apart, and the true
+    # dynamic surface the target leaves out (where only the images and the other terms teach the motion).
+    model_pixels: int = 0  # scored pixels the model covers (alpha > MODEL_MIN_ALPHA)
+    motion_vs_target_epe: float | None = None  # mean |motion flow - target| there
+    velocity_vs_target_epe: float | None = None  # mean |velocity flow - target| there (None: no material field)
+    motion_epe: float | None = None  # mean |motion flow - flow_gt| there
+    velocity_epe: float | None = None  # mean |velocity flow - flow_gt| there
+    unsupervised_pixels: int = 0  # true dynamic surface the target does not supervise and the model covers
+    motion_unsupervised_epe: float | None = None  # mean |motion flow - flow_gt| there
+    velocity_unsupervised_epe: float | None = None  # mean |velocity flow - flow_gt| there
 
 
 @dataclass
@@ -253,8 +269,7 @@ class MotionEvaluation:
             f"{_px(v.truth_velocity_flow_second_order_px)}) from the true displacement"
             + ("" if self.tracking is None else f"; {_tracking_text(self.tracking)}")
             + ("" if self.spin is None else f"; {_spin_text(self.spin)}")
-            + ("" if self.target is None else f"; flow target (train pairs, {self.target.depth} depth): EPE "
-               f"{_px(self.target.target_epe)} vs zero {_px(self.target.zero_motion_epe)}, covering {_pct(self.target.coverage)}")
+            + ("" if self.target is None else f"; {_target_text(self.target)}")
         )
 
     def per_frame_chart(self) -> str:
@@ -268,6 +283,8 @@ class MotionEvaluation:
         if self.target is not None:
             pairs = sorted((r for r in self.target.per_pair if r["target_epe"] is not None), key=lambda r: r["time"])
             series["flow target (training pairs)"] = [(r["time"], r["target_epe"]) for r in pairs]
+            series["velocity flow from its target (training pairs)"] = [
+                (r["time"], r["velocity_vs_target_epe"]) for r in pairs if r.get("velocity_vs_target_epe") is not None]
         return svg_chart({k: v for k, v in series.items() if v}, f"dataset time ({self.split} views)", "end-point error (px)",
                          y_floor=0.0, empty_note="no view was scored")
 
@@ -294,6 +311,15 @@ def _tracking_text(t: TrackingScores) -> str:
     return (f"3D tracking from the {t.anchors} view times through the recording: error {_num(t.error)} vs travel "
             f"{_num(t.travel)} world units (relative {_num(t.relative)}{objects}; the {_pct(t.seen_share)} whose "
             f"Gaussian the view sees: {_num(t.seen_relative)})")
+
+
+def _target_text(t: TargetScores) -> str:
+    model = (f"; the model from it: motion {_px(t.motion_vs_target_epe)}, velocity {_px(t.velocity_vs_target_epe)} "
+             f"(from the truth there: {_px(t.motion_epe)}, {_px(t.velocity_epe)}); on the {t.unsupervised_pixels} true "
+             f"dynamic px it leaves out: motion {_px(t.motion_unsupervised_epe)}, velocity "
+             f"{_px(t.velocity_unsupervised_epe)}") if t.model_pixels or t.unsupervised_pixels else ""
+    return (f"flow target (train pairs, {t.depth} depth): EPE {_px(t.target_epe)} vs zero {_px(t.zero_motion_epe)}, "
+            f"covering {_pct(t.coverage)}{model}")
 
 
 def _spin_text(s: SpinScores) -> str:
@@ -386,14 +412,40 @@ def target_flow_sums(target: FlowTarget, flow_gt: Tensor, dynamic: Tensor) -> di
     }
 
 
+def model_target_sums(flows: ModelFlows, target: FlowTarget, flow_gt: Tensor, dynamic: Tensor) -> dict[str, float | None]:
+    """Sums over one pair of the model's flows (``flows``, t to t+1 in camera t) on the true dynamic surface it covers:
+    where the target supervises, |flow - target| and |flow - flow_gt| and their count; where it does not,
+    |flow - flow_gt| and their count. Velocity sums are None without a material field."""
+    surface = dynamic & torch.isfinite(flow_gt).all(-1) & (flows.alpha > MODEL_MIN_ALPHA)
+    supervised, left = surface & target.valid, surface & ~target.valid
+    return {
+        "pixels": float(supervised.sum()),
+        "motion_vs_target": _epe_sum(flows.motion, target.flow, supervised),
+        "velocity_vs_target": _epe_sum(flows.velocity, target.flow, supervised),
+        "motion": _epe_sum(flows.motion, flow_gt, supervised),
+        "velocity": _epe_sum(flows.velocity, flow_gt, supervised),
+        "left_pixels": float(left.sum()),
+        "motion_left": _epe_sum(flows.motion, flow_gt, left),
+        "velocity_left": _epe_sum(flows.velocity, flow_gt, left),
+    }
+
+
+def _add_sums(total: dict[str, float | None], sums: dict[str, float | None]) -> None:
+    """Adds ``sums`` into ``total`` key by key (None stays None: a flow the model does not have)."""
+    for key, value in sums.items():
+        total[key] = None if value is None else total.get(key, 0.0) + value
+
+
 @torch.no_grad()
 def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: FlowConfig, truth: MotionGroundTruth) -> TargetScores | None:
     """The motion-flow target of every training pair of ``cache`` (built as training builds it, from frame t+1's
-    dataset depth or this model's render) against the truth; None for the total-flow target (``config.target``),
-    which holds the camera's motion too."""
+    dataset depth or this model's render) against the truth, and the model's flows over those pairs (the velocity by
+    ``config.velocity_integration``) against the target and the truth (:func:`model_target_sums`); None for the
+    total-flow target (``config.target``), which holds the camera's motion too."""
     if config.target != "motion":
         return None
     sums = dict.fromkeys(("error", "zero", "pixels", "dynamic", "off_flow", "off_pixels"), 0.0)
+    model_sums: dict[str, float | None] = {}
     skipped, depth, per_pair = [], "dataset", []
     for k in range(len(cache)):
         pair = cache.pair(k)
@@ -404,19 +456,35 @@ def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: Flow
         target, rendered = model_flow_target(model, pair, None, config)
         depth = "model" if rendered is not None else depth
         flow_gt, dynamic = resize_flow(torch.from_numpy(gt.flow), torch.from_numpy(gt.dynamic), (pair.frame0.width, pair.frame0.height))
-        pair_sums = target_flow_sums(target, flow_gt.to(target.flow.device), dynamic.to(target.flow.device))
+        flow_gt, dynamic = flow_gt.to(target.flow.device), dynamic.to(target.flow.device)
+        pair_sums = target_flow_sums(target, flow_gt, dynamic)
         for key, value in pair_sums.items():
             sums[key] += value
-        m = pair_sums["pixels"]
+        flows = model_flows(model, pair.frame0.camera, pair.frame0.time, pair.frame1.time, config.velocity_integration)
+        pair_model = model_target_sums(flows, target, flow_gt, dynamic)
+        _add_sums(model_sums, pair_model)
+        m, covered = pair_sums["pixels"], pair_model["pixels"]
         per_pair.append({"frame": pair.frame0.name, "time": pair.frame0.time, "pixels": int(m),
-                         "target_epe": ratio_or_none(pair_sums["error"], m), "zero_motion_epe": ratio_or_none(pair_sums["zero"], m)})
-    n = sums["pixels"]
+                         "target_epe": ratio_or_none(pair_sums["error"], m), "zero_motion_epe": ratio_or_none(pair_sums["zero"], m),
+                         "motion_vs_target_epe": _ratio(pair_model["motion_vs_target"], covered),
+                         "velocity_vs_target_epe": _ratio(pair_model["velocity_vs_target"], covered)})
+    n, covered, left = sums["pixels"], model_sums.get("pixels") or 0.0, model_sums.get("left_pixels") or 0.0
     return TargetScores(
         pairs=len(per_pair), pixels=int(n), depth=depth,
         target_epe=ratio_or_none(sums["error"], n), zero_motion_epe=ratio_or_none(sums["zero"], n),
         coverage=ratio_or_none(n, sums["dynamic"]), off_dynamic_pixels=int(sums["off_pixels"]),
         off_dynamic_flow=ratio_or_none(sums["off_flow"], sums["off_pixels"]), skipped=skipped, per_pair=per_pair,
+        model_pixels=int(covered), motion_vs_target_epe=_ratio(model_sums.get("motion_vs_target"), covered),
+        velocity_vs_target_epe=_ratio(model_sums.get("velocity_vs_target"), covered),
+        motion_epe=_ratio(model_sums.get("motion"), covered), velocity_epe=_ratio(model_sums.get("velocity"), covered),
+        unsupervised_pixels=int(left), motion_unsupervised_epe=_ratio(model_sums.get("motion_left"), left),
+        velocity_unsupervised_epe=_ratio(model_sums.get("velocity_left"), left),
     )
+
+
+def _ratio(total: float | None, count: float) -> float | None:
+    """total / count; None for a flow the model does not have or no pixel counted."""
+    return None if total is None else ratio_or_none(total, count)
 
 
 # ---- 3D velocity --------------------------------------------------------------------------------------------------

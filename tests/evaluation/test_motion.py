@@ -21,6 +21,7 @@ from pidg.data.motion_gt import FrameFlow, MotionObject, VertexMotion, read_moti
 from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.images import TITLE_STRIP_PX
 from pidg.evaluation.motion import (
+    MODEL_MIN_ALPHA,
     RADIUS_FRACTION,
     SEEN_MIN_WEIGHT,
     SPIN_FLOOR_DEG,
@@ -31,6 +32,7 @@ from pidg.evaluation.motion import (
     default_radius,
     evaluate_flow_target,
     evaluate_motion,
+    model_flows,
     rendered_weights,
     rotation_angle_deg,
     seen_gaussians,
@@ -482,6 +484,40 @@ def test_flow_target_of_a_still_camera_is_the_optical_flow_and_scores_the_truths
     assert evaluate_flow_target(plane_model(None), cache, FlowConfig(kind="lpfm", target="total"), truth) is None
 
 
+def test_the_models_flows_against_the_target_and_the_truth_on_and_off_the_supervised_pixels(tmp_path):
+    flow_px, shift = (3.0, -4.0), (0.6, 0.8)
+    cache, truth = _still_camera_cache(tmp_path, flow_px, (0.25, 0.25 + DT), shift=shift)
+    config = FlowConfig(kind="lpfm", mask_dilation=0)
+    # the deformation moves every Gaussian EXPECTED_PX in the pair's interval, the field's v (Euler) twice that
+    scores = evaluate_flow_target(plane_model(2.0 * VELOCITY / S), cache, config, truth)
+    motion, velocity = torch.tensor(EXPECTED_PX), 2.0 * torch.tensor(EXPECTED_PX)
+    target, gt = torch.tensor(flow_px), torch.tensor(flow_px) + torch.tensor(shift)
+    # supervised where the optical flow stays in the image (3 px right, 4 px up; as the test above); scored where the
+    # model covers the pixel (the plane leaves a margin of the view uncovered)
+    supervised = torch.zeros(H, W, dtype=torch.bool)
+    supervised[4:, : W - 3] = True
+    covered = model_flows(plane_model(None), CAMERA, 0.25, 0.25 + DT).alpha > MODEL_MIN_ALPHA
+    assert scores.model_pixels == int((covered & supervised).sum()) > 0
+    assert scores.unsupervised_pixels == int((covered & ~supervised).sum()) > 0
+    assert scores.motion_vs_target_epe == pytest.approx(float((motion - target).norm()), rel=1e-4)
+    assert scores.velocity_vs_target_epe == pytest.approx(float((velocity - target).norm()), rel=1e-4)
+    assert scores.motion_epe == pytest.approx(float((motion - gt).norm()), rel=1e-4)
+    assert scores.velocity_epe == pytest.approx(float((velocity - gt).norm()), rel=1e-4)
+    # on the true dynamic surface the target leaves out, against the truth alone
+    assert scores.motion_unsupervised_epe == pytest.approx(float((motion - gt).norm()), rel=1e-4)
+    assert scores.velocity_unsupervised_epe == pytest.approx(float((velocity - gt).norm()), rel=1e-4)
+    # the triangle the split rests on: the model's error from the truth is at most the target's + its distance from it
+    assert scores.velocity_epe <= scores.target_epe + scores.velocity_vs_target_epe + 1e-6
+    [pair] = scores.per_pair
+    assert pair["velocity_vs_target_epe"] == pytest.approx(scores.velocity_vs_target_epe, rel=1e-6)
+    assert pair["motion_vs_target_epe"] == pytest.approx(scores.motion_vs_target_epe, rel=1e-6)
+    # without a material field: no velocity figures, the motion ones as before
+    still = evaluate_flow_target(plane_model(None), cache, config, truth)
+    assert still.velocity_vs_target_epe is None and still.velocity_epe is None and still.velocity_unsupervised_epe is None
+    assert still.motion_vs_target_epe == pytest.approx(scores.motion_vs_target_epe, rel=1e-6)
+    assert still.per_pair[0]["velocity_vs_target_epe"] is None
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # pidg eval --motion-gt on a tiny procedural run
 # ---------------------------------------------------------------------------------------------------------------
@@ -530,18 +566,25 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     assert sum(r["pixels"] for r in pairs) == data["target"]["pixels"]
     pooled = sum(r["target_epe"] * r["pixels"] for r in pairs if r["pixels"]) / data["target"]["pixels"]
     assert pooled == pytest.approx(data["target"]["target_epe"], rel=1e-9)
+    # the model's velocity flow against the target over the same pairs: pooled, and per pair in the summary line
+    fitted = sorted((r for r in pairs if r["target_epe"] is not None and r["velocity_vs_target_epe"] is not None),
+                    key=lambda r: r["time"])
+    assert fitted and data["target"]["model_pixels"] > 0 and data["target"]["velocity_vs_target_epe"] >= 0
+    assert "the model from it: motion" in lines[0]
     # the per-frame errors drawn over time: one line per flow (and zero motion), a point per test view in time order,
-    # then the target's line, a point per scored training pair; the largest error at the plot's top edge, the axis
-    # from 0 px
+    # then the target's line, a point per scored training pair, and the velocity flow's distance from the target, a
+    # point per pair the model covers; the largest error at the plot's top edge, the axis from 0 px
     svg = (run / "eval_test" / "motion_gt_per_frame.svg").read_text()
     ElementTree.fromstring(svg)
     lines_xy = [[tuple(map(float, p.split(","))) for p in pts.split()] for pts in re.findall(r'points="([^"]+)"', svg)]
-    assert len(lines_xy) == 4 and all(len(line) == 2 and line[0][0] < line[1][0] for line in lines_xy[:3])
+    assert len(lines_xy) == 5 and all(len(line) == 2 and line[0][0] < line[1][0] for line in lines_xy[:3])
     scored_pairs = [r for r in pairs if r["target_epe"] is not None]
     assert len(lines_xy[3]) == len(scored_pairs) and scored_pairs
     assert all(a[0] < b[0] for a, b in zip(lines_xy[3], lines_xy[3][1:]))  # in time order
+    assert len(lines_xy[4]) == len(fitted) and all(a[0] < b[0] for a, b in zip(lines_xy[4], lines_xy[4][1:]))
     values = [r[k] for r in data["per_frame"] for k in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe")]
     values += [r["target_epe"] for r in sorted(scored_pairs, key=lambda r: r["time"])]
+    values += [r["velocity_vs_target_epe"] for r in fitted]
     ys = [y for line in lines_xy for _, y in line]
     assert ys[_flat_index(data, max(values))] == pytest.approx(12.0, abs=0.051)  # coordinates are written to 0.1
     lowest = 12 + (1 - min(values) / max(values)) * (300 - 40 - 12)  # plot top 12 px, bottom 300 - 40 px = 0 px EPE
@@ -557,12 +600,13 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
 
 
 def _flat_index(data: dict, value: float) -> int:
-    """Where ``value`` sits in the chart's points (lines in the order motion, velocity, zero, flow target; points in
-    time order)."""
+    """Where ``value`` sits in the chart's points (lines in the order motion, velocity, zero, flow target, velocity flow
+    from the target; points in time order)."""
     frames = sorted(data["per_frame"], key=lambda r: r["time"])
     flat = [r[k] for k in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe") for r in frames]
     pairs = sorted((r for r in data["target"]["per_pair"] if r["target_epe"] is not None), key=lambda r: r["time"])
-    return (flat + [r["target_epe"] for r in pairs]).index(value)
+    fitted = [r["velocity_vs_target_epe"] for r in pairs if r["velocity_vs_target_epe"] is not None]
+    return (flat + [r["target_epe"] for r in pairs] + fitted).index(value)
 
 
 @pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
