@@ -283,7 +283,7 @@ class MotionEvaluation:
         if self.target is not None:
             pairs = sorted((r for r in self.target.per_pair if r["target_epe"] is not None), key=lambda r: r["time"])
             series["flow target (training pairs)"] = [(r["time"], r["target_epe"]) for r in pairs]
-            series["velocity flow from its target (training pairs)"] = [
+            series["v flow from its target (training pairs)"] = [
                 (r["time"], r["velocity_vs_target_epe"]) for r in pairs if r.get("velocity_vs_target_epe") is not None]
         return svg_chart({k: v for k, v in series.items() if v}, f"dataset time ({self.split} views)", "end-point error (px)",
                          y_floor=0.0, empty_note="no view was scored")
