@@ -340,9 +340,10 @@ def _pct(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.1f}%"
 
 
-def ratio_or_none(total: float, count: float) -> float | None:
-    """total / count, or None where nothing was counted (a mean over no pixels, samples or vertices)."""
-    return total / count if count else None
+def ratio_or_none(total: float | None, count: float) -> float | None:
+    """total / count, or None where nothing was counted (a mean over no pixels, samples or vertices) or the total is
+    None (a flow the model does not have)."""
+    return total / count if count and total is not None else None
 
 
 def _mean(x: Tensor) -> float | None:
@@ -466,25 +467,20 @@ def evaluate_flow_target(model: DynamicGaussians, cache: FlowCache, config: Flow
         m, covered = pair_sums["pixels"], pair_model["pixels"]
         per_pair.append({"frame": pair.frame0.name, "time": pair.frame0.time, "pixels": int(m),
                          "target_epe": ratio_or_none(pair_sums["error"], m), "zero_motion_epe": ratio_or_none(pair_sums["zero"], m),
-                         "motion_vs_target_epe": _ratio(pair_model["motion_vs_target"], covered),
-                         "velocity_vs_target_epe": _ratio(pair_model["velocity_vs_target"], covered)})
+                         "motion_vs_target_epe": ratio_or_none(pair_model["motion_vs_target"], covered),
+                         "velocity_vs_target_epe": ratio_or_none(pair_model["velocity_vs_target"], covered)})
     n, covered, left = sums["pixels"], model_sums.get("pixels") or 0.0, model_sums.get("left_pixels") or 0.0
     return TargetScores(
         pairs=len(per_pair), pixels=int(n), depth=depth,
         target_epe=ratio_or_none(sums["error"], n), zero_motion_epe=ratio_or_none(sums["zero"], n),
         coverage=ratio_or_none(n, sums["dynamic"]), off_dynamic_pixels=int(sums["off_pixels"]),
         off_dynamic_flow=ratio_or_none(sums["off_flow"], sums["off_pixels"]), skipped=skipped, per_pair=per_pair,
-        model_pixels=int(covered), motion_vs_target_epe=_ratio(model_sums.get("motion_vs_target"), covered),
-        velocity_vs_target_epe=_ratio(model_sums.get("velocity_vs_target"), covered),
-        motion_epe=_ratio(model_sums.get("motion"), covered), velocity_epe=_ratio(model_sums.get("velocity"), covered),
-        unsupervised_pixels=int(left), motion_unsupervised_epe=_ratio(model_sums.get("motion_left"), left),
-        velocity_unsupervised_epe=_ratio(model_sums.get("velocity_left"), left),
+        model_pixels=int(covered), motion_vs_target_epe=ratio_or_none(model_sums.get("motion_vs_target"), covered),
+        velocity_vs_target_epe=ratio_or_none(model_sums.get("velocity_vs_target"), covered),
+        motion_epe=ratio_or_none(model_sums.get("motion"), covered), velocity_epe=ratio_or_none(model_sums.get("velocity"), covered),
+        unsupervised_pixels=int(left), motion_unsupervised_epe=ratio_or_none(model_sums.get("motion_left"), left),
+        velocity_unsupervised_epe=ratio_or_none(model_sums.get("velocity_left"), left),
     )
-
-
-def _ratio(total: float | None, count: float) -> float | None:
-    """total / count; None for a flow the model does not have or no pixel counted."""
-    return None if total is None else ratio_or_none(total, count)
 
 
 # ---- 3D velocity --------------------------------------------------------------------------------------------------

@@ -442,7 +442,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
         surface = moving_surface(pair.frame1)
         surfaces.append(surface[0])
         continued = {bi: _constant_velocity(x[body == bi], rotation, shift, pair.dt / dt_last)  # the last velocity
-                     for bi, (rotation, shift, dt_last) in last.items()}
+                     for bi, (rotation, shift, dt_last) in last.items() if alive[bi]}
         claimed = _surface_owners(x, body, alive, continued, surface[0])
         moved = x.clone()
         found_k = torch.zeros(n_bodies, dtype=torch.bool)
