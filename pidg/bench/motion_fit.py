@@ -1,4 +1,5 @@
-"""``pidg bench motion-fit RUN``: can the run's deformation field represent the scene's true motion at all?
+"""``pidg bench motion-fit RUN``: can the run's deformation field, and its material field, represent the scene's
+true motion at all?
 
 A learned motion can be wrong because the field cannot express the truth (capacity: resolution, table size, width,
 the time axis) or because training through images does not lead it there (the optimisation's path, the supervision).
@@ -21,6 +22,15 @@ trajectories, with no image in the loop, and scored beside the run's trained fie
   it moves rigidly and turns (:func:`pidg.evaluation.motion.rigid_turn`), as ``pidg eval --motion-gt`` defines it
   (degrees per sample interval; relative 0 = right, 1 = not turning), here on the surface points rather than on
   matched Gaussians.
+
+With a material field (``--physics cmr`` or ``--flow lpfm``), a fresh one of the run's configuration is fitted the
+same way to the true *velocities* (:func:`fit_velocity_field`): each step one sample time, the L1 error of v at the
+surface points' true positions (each point its own index row) and of zero at the still points, with the trainer's
+own optimizers of the field (:func:`pidg.training.optim.material_optimizers`). :class:`VelocityScores` compares it and
+the trained field (at the same true positions, with the index of the run's Gaussian nearest each point at that time)
+with the truth, pooled and per sample time: the share of the true speed that is off (0 right, 1 = as far off as
+standing still), after converting v from world units per physics time unit to the truth's units (world units per
+unit of dataset time, :func:`pidg.evaluation.motion.velocity_per_dataset_time`).
 
 The trained field's scores on these points say how the run moves the *first-time surfaces*, which a relay of
 Gaussians (docs/motion.md, "The bodies' spin") leaves behind; the run's rendered motion is scored by
@@ -45,13 +55,16 @@ from pidg.evaluation.motion import (
     ratio_or_none,
     rigid_turn,
     rotation_angle_deg,
+    velocity_per_dataset_time,
 )
 from pidg.export.run_model import check_run_folder
 from pidg.models.deformation import DeformationConfig, DeformationModel, build_deformation
 from pidg.models.dynamic_gaussians import DynamicGaussians
+from pidg.models.material_field import MaterialField
+from pidg.models.time_axis import TimeAxis
 from pidg.training.config import TrainConfig
 from pidg.training.motion_start import fit_config, fit_field, identity_rows
-from pidg.training.optim import deformation_optimizer
+from pidg.training.optim import ScheduledOptimizer, deformation_optimizer, material_optimizers
 
 
 @dataclass(frozen=True)
@@ -81,6 +94,7 @@ class SurfaceSamples:
     """Points on the dynamic surfaces, carried through the recording."""
 
     trajectories: Tensor  # [T, P, 3] world units, at the ground truth's sample times
+    velocities: Tensor  # [T, P, 3] world units per unit of dataset time, the same points' (the same interpolation)
     owner: Tensor  # [P] index of the object (``MotionGroundTruth.objects``) each point lies on
     times: Tensor  # [T] dataset time
 
@@ -100,14 +114,25 @@ class FieldScores:
 
 
 @dataclass(frozen=True)
+class VelocityScores:
+    """How far a material field's v is from the surface points' true velocities (module docstring)."""
+
+    relative: float | None  # sum |v - v_true| / sum |v_true| over samples and points (0 right, 1 = standing still)
+    relative_by_time: list[float | None]  # the same at each ground-truth sample time
+    error: float  # mean |v - v_true|, world units per unit of dataset time
+
+
+@dataclass(frozen=True)
 class MotionFitResult:
     run: str
     steps: int
-    seconds: float  # wall time of the fit
+    seconds: float  # wall time of the fits (the deformation field and, with one, the material field)
     surface_points: int
     static_points: int
     fitted: FieldScores
     trained: FieldScores
+    fitted_velocity: VelocityScores | None = None  # None: the run has no material field
+    trained_velocity: VelocityScores | None = None
 
 
 def surface_samples(truth: MotionGroundTruth, count: int, generator: torch.Generator) -> SurfaceSamples:
@@ -135,9 +160,12 @@ def surface_samples(truth: MotionGroundTruth, count: int, generator: torch.Gener
 
 def _carried(truth: MotionGroundTruth, positions: Tensor, faces: Tensor, chosen: Tensor, weights: Tensor) -> SurfaceSamples:
     """Samples on the triangles ``faces[chosen]`` with barycentric ``weights`` [P, 3], through every sample time."""
-    trajectories = (positions[:, faces[chosen]] * weights[None, :, :, None]).sum(2).float()
+    def carry(per_vertex: Tensor) -> Tensor:
+        return (per_vertex[:, faces[chosen]] * weights[None, :, :, None]).sum(2).float()
+
     owner = truth.vertex_objects()[faces[chosen, 0]]  # the object of each sample's triangle
-    return SurfaceSamples(trajectories, owner, torch.from_numpy(truth.vertices.times).float())
+    velocities = torch.from_numpy(truth.vertices.velocities).double()
+    return SurfaceSamples(carry(positions), carry(velocities), owner, torch.from_numpy(truth.vertices.times).float())
 
 
 def static_anchors(means: Tensor, moving: Tensor, radius: float, count: int, generator: torch.Generator) -> Tensor:
@@ -208,6 +236,72 @@ def score_field(carried: Tensor, samples: SurfaceSamples, truth: MotionGroundTru
     )
 
 
+def fresh_material_field(run_field: MaterialField, num_points: int) -> MaterialField:
+    """A new material field of ``run_field``'s configuration and box with one index row per fitted point."""
+    new = MaterialField(None, num_points, run_field.config)
+    new.normalize.load_state_dict(run_field.normalize.state_dict())
+    return new
+
+
+def fit_velocity_field(
+    field: MaterialField, positions: Tensor, velocities: Tensor, times: Tensor, optimizers: dict[str, ScheduledOptimizer],
+    steps: int, generator: torch.Generator,
+) -> float:
+    """Fit ``field``'s v to ``velocities`` [T, P, 3] (world units per physics time unit) at ``positions`` [T, P, 3],
+    point p with index row p, in ``steps`` steps: each step one time of ``times`` [T] drawn at random, the mean
+    absolute error. Returns the last step's loss."""
+    index = torch.arange(positions.shape[1])
+    loss = torch.zeros(())
+    field.train()
+    for step in range(steps):
+        k = int(torch.randint(len(times), (1,), generator=generator))
+        v, _ = field(positions[k], times[k].expand(positions.shape[1]), index)
+        loss = (v - velocities[k]).abs().mean()
+        for optimizer in optimizers.values():
+            optimizer.zero_grad()
+        loss.backward()
+        for optimizer in optimizers.values():
+            optimizer.step(step)
+    return float(loss.detach())
+
+
+def score_velocities(velocities: Tensor, samples: SurfaceSamples) -> VelocityScores:
+    """Scores of a field's ``velocities`` [T, P, 3] (world units per unit of dataset time) at the surface points
+    against theirs (module docstring)."""
+    true = samples.velocities.double()
+    error = (velocities.double() - true).norm(dim=2)  # [T, P]
+    speed = true.norm(dim=2)
+    return VelocityScores(
+        relative=ratio_or_none(float(error.sum()), float(speed.sum())),
+        relative_by_time=[ratio_or_none(float(e), float(s)) for e, s in zip(error.sum(1), speed.sum(1))],
+        error=float(error.mean()),
+    )
+
+
+@torch.no_grad()
+def fitted_velocities(field: MaterialField, samples: SurfaceSamples, time_axis: TimeAxis) -> Tensor:
+    """The fitted field's v at the surface points' true positions, point p with index row p: [T, P, 3] in world
+    units per unit of dataset time."""
+    index = torch.arange(samples.trajectories.shape[1])
+    return torch.stack([velocity_per_dataset_time(field(x, t.expand(len(x)), index)[0], time_axis)
+                        for x, t in zip(samples.trajectories, samples.times)])
+
+
+@torch.no_grad()
+def trained_velocities(model: DynamicGaussians, samples: SurfaceSamples) -> Tensor:
+    """The run's material field's v at the surface points' true positions, each with the index of the run's Gaussian
+    nearest it at that time: [T, P, 3] in world units per unit of dataset time."""
+    field = model.material_field
+    if field is None:
+        raise ValueError("the run has no material field (trained with --physics none --flow none): no v to score")
+    out = []
+    for x, t in zip(samples.trajectories, samples.times):
+        nearest, _ = nearest_gaussians(x, model.at(float(t)).means.float())
+        v, _ = field(x, t.expand(len(x)), model.gaussians.particle_index[nearest])
+        out.append(velocity_per_dataset_time(v, model.time_axis))
+    return torch.stack(out)
+
+
 def run_motion_fit(run_dir: Path, config: MotionFitConfig, out: Path | None = None) -> MotionFitResult:
     """Fit a fresh field of the run's configuration to its scene's true motion, score it beside the run's own field,
     print a table and write ``out`` (JSON) when given."""
@@ -232,10 +326,24 @@ def run_motion_fit(run_dir: Path, config: MotionFitConfig, out: Path | None = No
     seconds = time.perf_counter() - began
     fitted.eval()
     surface = samples.trajectories[0]
+    velocity_scores: dict[str, VelocityScores] = {}
+    if model.material_field is not None:
+        began = time.perf_counter()
+        field = fresh_material_field(model.material_field, targets.shape[1])
+        in_field_units = samples.velocities / model.time_axis.physics_per_dataset  # per physics time unit
+        still = torch.zeros(len(samples.times), len(anchors), 3)
+        positions = torch.cat([samples.trajectories, anchors.expand(len(samples.times), -1, -1)], dim=1)
+        fit_velocity_field(field, positions, torch.cat([in_field_units, still], dim=1), samples.times,
+                           material_optimizers(field, fit_config(train_config, steps), scene_extent=1.0), steps, generator)
+        seconds += time.perf_counter() - began
+        field.eval()
+        velocity_scores = {"fitted_velocity": score_velocities(fitted_velocities(field, samples, model.time_axis), samples),
+                           "trained_velocity": score_velocities(trained_velocities(model, samples), samples)}
     result = MotionFitResult(
         run=str(run_dir), steps=steps, seconds=seconds, surface_points=len(surface), static_points=len(anchors),
         fitted=score_field(carried_points(fitted, surface, samples.times), samples, truth),
         trained=score_field(carried_points(trained, surface, samples.times), samples, truth),
+        **velocity_scores,
     )
     print(format_result(result))
     if out is not None:
@@ -259,5 +367,8 @@ def format_result(result: MotionFitResult) -> str:
         turn = "-" if s.spin_true_deg is None else f"{s.spin_learned_deg:.1f}/{s.spin_true_deg:.1f} deg"
         lines.append(f"{name:<8} {num(s.position_error):>8} {num(s.position_relative):>8} {num(s.step_relative):>9} "
                      f"{num(s.spin_relative):>9} {turn:>14}")
+    if result.fitted_velocity is not None and result.trained_velocity is not None:
+        lines.append(f"material field v, share of the true speed off: fitted {num(result.fitted_velocity.relative)}, "
+                     f"trained {num(result.trained_velocity.relative)}")
     lines.append("(pos err in world units; rel: share of the truth's travel, step and turn; 0 = right, 1 = no motion)")
     return "\n".join(lines)

@@ -22,7 +22,7 @@ from torch.autograd.graph import increment_version
 from pidg.models.deformation import GROUP_GRID, GROUP_MLP, DeformationModel
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.gaussians import GaussianModel
-from pidg.models.material_field import GROUP_EMBEDDING
+from pidg.models.material_field import GROUP_EMBEDDING, MaterialField
 from pidg.training.config import GaussianOptimConfig, TrainConfig
 from pidg.training.sparse_adam import SparseAdam
 
@@ -156,10 +156,31 @@ def deformation_optimizer(field: DeformationModel, config: TrainConfig, scene_ex
                               start=o.static_warmup)
 
 
+def material_optimizers(field: MaterialField, config: TrainConfig, scene_extent: float) -> dict[str, ScheduledOptimizer]:
+    """The material field's optimizers in a run of ``config``: ``material`` (its MLP at ``optim.material_lr``, its
+    planes ``material_grid_lr_factor`` times that) and ``material_embedding`` (the index embedding, sparse).
+    ``pidg bench motion-fit`` fits a fresh field with them too."""
+    o = config.optim
+    field_groups = field.parameter_groups()
+    lrs = {GROUP_GRID: o.material_lr * o.material_grid_lr_factor, GROUP_MLP: o.material_lr}
+    out = {}
+    dense = _groups(field_groups, lrs, "material_")
+    if dense:
+        out["material"] = ScheduledOptimizer(adam(dense, betas=BETAS, eps=EPS), schedule_for("material", config, scene_extent))
+    # The embedding's gradient is sparse (only the M sampled rows): a dense one would cost a zero-filled [P, H]
+    # tensor and a full Adam update per step, i.e. time and memory growing with the number of particles
+    # (measured: +24 ms per step at P = 200k). SparseAdam also leaves rows that were not sampled untouched.
+    sparse = _groups(field_groups, {GROUP_EMBEDDING: o.material_embedding_lr}, "material_")
+    if sparse:
+        out["material_embedding"] = ScheduledOptimizer(SparseAdam(sparse, betas=BETAS, eps=EPS),
+                                                       schedule_for("material_embedding", config, scene_extent))
+    return out
+
+
 def make_optimizers(model: DynamicGaussians, config: TrainConfig, scene_extent: float) -> dict[str, ScheduledOptimizer]:
     """All optimizers of a run: the Gaussian parameters' (keyed by parameter name), ``deformation``, and with a
     material field ``material`` and ``material_embedding``."""
-    o, g = config.optim, config.gaussian_optim
+    g = config.gaussian_optim
     out = {
         name: ScheduledOptimizer(opt, schedule_for(name, config, scene_extent))
         for name, opt in make_gaussian_optimizers(model.gaussians, g, scene_extent).items()
@@ -168,16 +189,5 @@ def make_optimizers(model: DynamicGaussians, config: TrainConfig, scene_extent: 
     if deformation is not None:
         out["deformation"] = deformation
     if model.material_field is not None:
-        field_groups = model.material_field.parameter_groups()
-        lrs = {GROUP_GRID: o.material_lr * o.material_grid_lr_factor, GROUP_MLP: o.material_lr}
-        dense = _groups(field_groups, lrs, "material_")
-        if dense:
-            out["material"] = ScheduledOptimizer(adam(dense, betas=BETAS, eps=EPS), schedule_for("material", config, scene_extent))
-        # The embedding's gradient is sparse (only the M sampled rows): a dense one would cost a zero-filled [P, H]
-        # tensor and a full Adam update per step, i.e. time and memory growing with the number of particles
-        # (measured: +24 ms per step at P = 200k). SparseAdam also leaves rows that were not sampled untouched.
-        sparse = _groups(field_groups, {GROUP_EMBEDDING: o.material_embedding_lr}, "material_")
-        if sparse:
-            out["material_embedding"] = ScheduledOptimizer(SparseAdam(sparse, betas=BETAS, eps=EPS),
-                                                           schedule_for("material_embedding", config, scene_extent))
+        out.update(material_optimizers(model.material_field, config, scene_extent))
     return out

@@ -738,7 +738,8 @@ def test_spin_leaves_out_bodies_that_barely_turn_or_are_not_rigid(tmp_path):
 
 def test_cli_bench_motion_fit_fits_a_fresh_field_beside_the_trained_one(tiny_run, tmp_path, capsys):
     """`pidg bench motion-fit` on a procedural run (a truth of points, no triangles): the table's two rows and the JSON;
-    the fitted field, taught the truth directly, ends nearer to it than the run's 6-step field."""
+    the fitted fields, taught the truth directly, end nearer to it than the run's 6-step fields (the deformation and,
+    the run having one, the material field's v)."""
     from pidg.cli import main
 
     out = tmp_path / "fit.json"
@@ -751,5 +752,8 @@ def test_cli_bench_motion_fit_fits_a_fresh_field_beside_the_trained_one(tiny_run
     data = json.loads(out.read_text())
     assert data["steps"] == 150 and data["surface_points"] == 200
     assert data["fitted"]["position_relative"] < data["trained"]["position_relative"]
+    assert data["fitted_velocity"]["relative"] < data["trained_velocity"]["relative"]
+    assert len(data["fitted_velocity"]["relative_by_time"]) == len(data["trained_velocity"]["relative_by_time"]) > 1
+    assert "material field v, share of the true speed off: fitted" in printed
     assert main(["bench", "motion-fit", str(tiny_run / "run"), "--points", "2"]) == 2
     assert capsys.readouterr().err.strip().count("\n") == 0  # one line
