@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -279,27 +280,31 @@ def score_velocities(velocities: Tensor, samples: SurfaceSamples) -> VelocitySco
 
 
 @torch.no_grad()
-def fitted_velocities(field: MaterialField, samples: SurfaceSamples, time_axis: TimeAxis) -> Tensor:
-    """The fitted field's v at the surface points' true positions, point p with index row p: [T, P, 3] in world
-    units per unit of dataset time."""
-    index = torch.arange(samples.trajectories.shape[1])
-    return torch.stack([velocity_per_dataset_time(field(x, t.expand(len(x)), index)[0], time_axis)
+def field_velocities(field: MaterialField, samples: SurfaceSamples, time_axis: TimeAxis,
+                     index_at: Callable[[Tensor, Tensor], Tensor]) -> Tensor:
+    """``field``'s v at the surface points' true positions, with the index rows ``index_at(positions, t)`` gives at
+    each sample time: [T, P, 3] in world units per unit of dataset time."""
+    return torch.stack([velocity_per_dataset_time(field(x, t.expand(len(x)), index_at(x, t))[0], time_axis)
                         for x, t in zip(samples.trajectories, samples.times)])
 
 
-@torch.no_grad()
+def fitted_velocities(field: MaterialField, samples: SurfaceSamples, time_axis: TimeAxis) -> Tensor:
+    """The fitted field's v at the surface points, point p with index row p (:func:`field_velocities`)."""
+    return field_velocities(field, samples, time_axis, lambda x, t: torch.arange(len(x)))
+
+
 def trained_velocities(model: DynamicGaussians, samples: SurfaceSamples) -> Tensor:
-    """The run's material field's v at the surface points' true positions, each with the index of the run's Gaussian
-    nearest it at that time: [T, P, 3] in world units per unit of dataset time."""
+    """The run's material field's v at the surface points, each with the index of the run's Gaussian nearest it at
+    that time (:func:`field_velocities`)."""
     field = model.material_field
     if field is None:
         raise ValueError("the run has no material field (trained with --physics none --flow none): no v to score")
-    out = []
-    for x, t in zip(samples.trajectories, samples.times):
+
+    def nearest_index(x: Tensor, t: Tensor) -> Tensor:
         nearest, _ = nearest_gaussians(x, model.at(float(t)).means.float())
-        v, _ = field(x, t.expand(len(x)), model.gaussians.particle_index[nearest])
-        out.append(velocity_per_dataset_time(v, model.time_axis))
-    return torch.stack(out)
+        return model.gaussians.particle_index[nearest]
+
+    return field_velocities(field, samples, model.time_axis, nearest_index)
 
 
 def run_motion_fit(run_dir: Path, config: MotionFitConfig, out: Path | None = None) -> MotionFitResult:
@@ -332,8 +337,7 @@ def run_motion_fit(run_dir: Path, config: MotionFitConfig, out: Path | None = No
         field = fresh_material_field(model.material_field, targets.shape[1])
         in_field_units = samples.velocities / model.time_axis.physics_per_dataset  # per physics time unit
         still = torch.zeros(len(samples.times), len(anchors), 3)
-        positions = torch.cat([samples.trajectories, anchors.expand(len(samples.times), -1, -1)], dim=1)
-        fit_velocity_field(field, positions, torch.cat([in_field_units, still], dim=1), samples.times,
+        fit_velocity_field(field, targets, torch.cat([in_field_units, still], dim=1), samples.times,  # the same points
                            material_optimizers(field, fit_config(train_config, steps), scene_extent=1.0), steps, generator)
         seconds += time.perf_counter() - began
         field.eval()
