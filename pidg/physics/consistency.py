@@ -32,10 +32,16 @@ def particle_velocity(model: DynamicGaussians, t: float, rows: Tensor | None = N
 
 def particle_step_velocity(model: DynamicGaussians, t: float, means: Tensor, rows: Tensor | None = None) -> Tensor:
     """The deformation's move [N, 3] of the particles ``rows`` (all: None), at ``means`` at dataset time ``t``, over
-    the next training-frame interval, as a velocity in world units per physics time unit: (x(t + dt) - x(t)) / dt."""
+    the next training-frame interval, as a velocity in world units per physics time unit: (x(t + dt) - x(t)) / dt.
+    Where that interval leaves the recording (t + dt > 1: the last training frame) the interval is the one that ends
+    at t = 1, as :meth:`DynamicGaussians.motion_velocity` stays in [0, 1]: past the end no image supervises the
+    deformation, and its move there taught v at the last frame about half the true speed on the generated kinematic
+    scene (docs/motion.md, "Holding the tracks")."""
     time_axis = model.time_axis
     dt = time_axis.frame_interval
-    return (model.at(t + dt, rows=rows).means - means) / time_axis.to_physics(dt)
+    end = min(t + dt, 1.0)
+    start = means if end == t + dt else model.at(end - dt, rows=rows).means
+    return (model.at(end, rows=rows).means - start) / time_axis.to_physics(dt)
 
 
 def velocity_mismatch(v: Tensor, target: Tensor, time_axis: TimeAxis, half_extent: Tensor) -> Tensor:

@@ -104,6 +104,12 @@ class OptimConfig:
     the bodies' later-seen sides in the tracks (6100 points on the generated kinematic scene) 1000 steps left the fit
     0.069 world units off, 3000 0.005, and the runs from it better in every val figure on both generated scenes
     (docs/motion.md, "Rigid-body tracks that hold"); ~2 minutes more on a 2-core CPU."""
+    lambda_tracks: Annotated[float, NON_NEGATIVE] = 0.0
+    """Weight of a tracks term (an extension; needs motion_start rigid_tracks; 0: off): through training, the mean
+    absolute position error (world units) of the deformation carrying the points motion_start fitted it to (each
+    body's tracked points and the still surface) to their tracks at the step frame's time, on up to
+    ``losses.TRACK_POINTS_PER_STEP`` of them a step. The start alone is a place to begin: the image losses then move
+    the deformation wherever one view a time cannot see (docs/motion.md, "Holding the tracks")."""
     time_budget_minutes: Annotated[float, POSITIVE] | None = None
     """Training time allowed, in minutes (steps only: evaluation, previews and checkpoint writes are not counted);
     none: no budget. What happens at the budget is time_budget_policy's choice."""

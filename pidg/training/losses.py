@@ -13,6 +13,7 @@ Terms, in the order they are summed (NOTES.md section 9):
   depth           lambda_depth * relative depth error against the dataset's depth maps (``--optim.lambda_depth``)
   cmr             lambda_cmr * L_CMR at the deformed positions (``--physics cmr``)
   lpfm            lambda_lpfm * L_LPFM of the rendered flows against the motion-flow target (``--flow lpfm``)
+  tracks          lambda_tracks * the deformation's position error on the motion start's tracks (``--optim.lambda_tracks``)
 """
 from __future__ import annotations
 
@@ -51,6 +52,7 @@ from pidg.physics import (
 from pidg.render import OPAQUE_ALPHA, PreparedRender, RenderOutput
 from pidg.training.config import TrainConfig
 from pidg.training.fused_ssim import fused_ssim
+from pidg.training.motion_start import TrackTargets, identity_rows
 
 
 def l1_loss(pred: Tensor, gt: Tensor) -> Tensor:
@@ -266,6 +268,54 @@ class ParticleVelocityLoss(_PhysicsParticleTerm):
         return self.config.lambda_kinematic * mismatch, {"kinematic": float(mismatch.detach())}
 
 
+#: Tracked points the tracks term deforms a step (of ~6,000-13,000 on the generated scenes): a deformation pass on
+#: them costs a few ms on a 2-core CPU, a small share of a step.
+TRACK_POINTS_PER_STEP = 4096
+
+
+class TrackHoldLoss(LossTerm):
+    """lambda_tracks * the mean absolute position error (world units) of the deformation carrying the tracked points
+    (:class:`pidg.training.motion_start.TrackTargets`, what ``optim.motion_start rigid_tracks`` fitted it to) to their
+    tracks at the step frame's time, on a random subset of the points known there. The start's long-range 3D
+    correspondence, kept through training: the image losses see each time from one view only and move what it does
+    not see. The targets are saved in checkpoints (a resumed run does not track again)."""
+
+    name = "tracks"
+
+    def __init__(self, weight: float, targets: TrackTargets | None, seed: int) -> None:
+        self.weight = weight
+        self.targets = targets  # None until a checkpoint's state is loaded (a resumed run)
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
+        zero = render.rgb.new_zeros(())
+        targets = self.targets
+        if targets is None or not inputs.deforming:
+            return zero, {}
+        k = int(torch.argmin((targets.times - inputs.frame.time).abs()))
+        if abs(float(targets.times[k]) - inputs.frame.time) > 1e-6:  # not one of the tracked frames' times
+            return zero, {}
+        known = targets.known[k].nonzero().squeeze(1)
+        picked = sample_rows(known.numel(), TRACK_POINTS_PER_STEP, self.generator)
+        rows = known if picked is None else known[picked.to(known.device)]
+        deformation = inputs.model.deformation
+        quats, log_scales = identity_rows(len(rows), rows.device)
+        t = torch.full((len(rows),), inputs.frame.time, device=rows.device)
+        carried = deformation.deform(targets.start[rows], quats, log_scales, t, regularize=False).means
+        error = (carried - targets.positions[k, rows]).abs().mean()
+        return self.weight * error, {"tracks": float(error.detach())}
+
+    def state_dict(self) -> dict[str, Any]:
+        targets = None if self.targets is None else dataclasses.asdict(self.targets.to("cpu"))
+        return {"targets": targets, "generator": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state["targets"] is not None:
+            device = self.targets.start.device if self.targets is not None else torch.device("cpu")
+            self.targets = TrackTargets(**state["targets"]).to(device)
+        self.generator.set_state(state["generator"])
+
+
 @dataclass
 class _CachedTarget:
     """A pair's flow_gt, the step it was built at, and frame t+1's rendered depth (None: the dataset's depth map)."""
@@ -391,8 +441,9 @@ class FlowMatchingLoss(LossTerm):
             self.generator.set_state(state["generator"])
 
 
-def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[LossTerm]:
-    """The terms a run config asks for, in summation order."""
+def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None, tracks: TrackTargets | None = None) -> list[LossTerm]:
+    """The terms a run config asks for, in summation order; ``tracks``: what the motion start fitted (None on a
+    resumed run: the tracks term reads its targets from the checkpoint)."""
     terms: list[LossTerm] = [PhotometricLoss(config.optim.lambda_dssim, config.backend), DeformationSmoothness(config.optim.static_warmup)]
     if config.optim.lambda_depth > 0:
         terms.append(DepthLoss(config.optim.lambda_depth))
@@ -404,4 +455,6 @@ def build_loss_terms(config: TrainConfig, flow_cache: FlowCache | None) -> list[
         if flow_cache is None:
             raise ValueError("the flow loss needs the scene's optical flow (a FlowCache)")
         terms.append(FlowMatchingLoss(config.flow, flow_cache, config.optim.seed + 3))
+    if config.optim.lambda_tracks > 0:
+        terms.append(TrackHoldLoss(config.optim.lambda_tracks, tracks, config.optim.seed + 4))
     return terms

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
 from pidg.flow.preprocess import FlowCache
-from pidg.flow.rigid_tracks import RigidTrackConfig, RigidTracks, track_rigid_bodies
+from pidg.flow.rigid_tracks import RigidTrackConfig, track_rigid_bodies
 from pidg.models.deformation import DeformationModel
 from pidg.training.config import TrainConfig
 from pidg.training.optim import ScheduledOptimizer, deformation_optimizer
@@ -23,6 +23,20 @@ def identity_rows(n: int, device: torch.device | str = "cpu") -> tuple[Tensor, T
     quats = torch.zeros(n, 4, device=device)
     quats[:, 0] = 1.0
     return quats, torch.zeros(n, 3, device=device)
+
+
+@dataclass
+class TrackTargets:
+    """Points and where the deformation should carry them: ``start`` [P, 3] (canonical = the first training frame's
+    positions, world units) to ``positions`` [T, P, 3] at ``times`` [T] (dataset time), where ``known`` [T, P]."""
+
+    start: Tensor
+    positions: Tensor
+    times: Tensor
+    known: Tensor
+
+    def to(self, device: torch.device | str) -> "TrackTargets":
+        return TrackTargets(self.start.to(device), self.positions.to(device), self.times.to(device), self.known.to(device))
 
 
 def fit_field(
@@ -55,14 +69,15 @@ def fit_config(train_config: TrainConfig, steps: int) -> TrainConfig:
     return replace(train_config, optim=replace(train_config.optim, iterations=steps, static_warmup=0))
 
 
-def start_from_rigid_tracks(field: DeformationModel, cache: FlowCache, config: TrainConfig) -> RigidTracks:
+def start_from_rigid_tracks(field: DeformationModel, cache: FlowCache, config: TrainConfig) -> TrackTargets:
     """Fit ``field`` to the rigid bodies tracked through ``cache`` (:mod:`pidg.flow.rigid_tracks`, the dataset's depth
     and motion masks), each point while its body is tracked, and to the first frame's still surface held still, over
     ``optim.motion_start_steps`` steps at the run's rates (the training's own optimizer then starts afresh). A body
     lost before half the training intervals is left out: a field fitted to the start of a path leaves the rest of it
     anywhere (the kinematic head, lost at interval 16 of 44 by the first tracker, which followed the flow alone: far
     worse than a start at rest), while a body lost late still gives most of its path (docs/motion.md, "A start from
-    rigid-body tracks"). ValueError when every body is lost that early. Returns the tracks."""
+    rigid-body tracks"). ValueError when every body is lost that early. Returns what was fitted (``optim.lambda_tracks``
+    keeps training near it)."""
     began = time.perf_counter()
     generator = torch.Generator().manual_seed(config.optim.seed)
     tracks = track_rigid_bodies(cache, RigidTrackConfig(), generator)
@@ -76,16 +91,18 @@ def start_from_rigid_tracks(field: DeformationModel, cache: FlowCache, config: T
                          f"{int(tracked_to.max())} of {intervals}): train from rest")
     steps = config.optim.motion_start_steps
     moving, still = tracks.positions[:, use].float(), tracks.static.float()
-    start = torch.cat([moving[0], still])
-    targets = torch.cat([moving, still.expand(len(moving), -1, -1)], dim=1)
-    known = torch.cat([tracks.known[:, use], torch.ones(len(moving), len(still), dtype=torch.bool)], dim=1)
     device = next(field.parameters()).device
+    targets = TrackTargets(
+        start=torch.cat([moving[0], still]),
+        positions=torch.cat([moving, still.expand(len(moving), -1, -1)], dim=1),
+        times=tracks.times.float(),
+        known=torch.cat([tracks.known[:, use], torch.ones(len(moving), len(still), dtype=torch.bool)], dim=1),
+    ).to(device)
     optimizer = deformation_optimizer(field, fit_config(config, steps), scene_extent=1.0)
-    loss = fit_field(field, start.to(device), targets.to(device), tracks.times.float().to(device), optimizer, steps,
-                     generator, known.to(device))
+    loss = fit_field(field, targets.start, targets.positions, targets.times, optimizer, steps, generator, targets.known)
     logger.info("motion start: %d of %d rigid bodies fitted (%d points; %d tracked through all %d intervals; a motion "
                 "fitted on %.0f%% of the body-intervals, carried at rest or constant velocity on the others), with %d "
                 "still points, in %d steps (last loss %.4f world units), %.0f s", kept, n_bodies, int(use.sum()),
                 len(torch.unique(tracks.body[tracks.known[-1]])), intervals, 100.0 * float(tracks.found.float().mean()),
                 len(still), steps, loss, time.perf_counter() - began)
-    return tracks
+    return targets

@@ -76,6 +76,8 @@ def resume_config(saved: TrainConfig, overrides: dict[str, str]) -> tuple[TrainC
     refused = [f"{name} {old} -> {value}" for name, old, value in changes if _frozen(name)]
     if new.needs_material_field and not saved.needs_material_field:
         refused.append("a material field (physics or flow on): the run was trained without one")
+    if new.optim.lambda_tracks > 0 and saved.optim.lambda_tracks == 0:
+        refused.append("a tracks term (optim.lambda_tracks): the run kept no tracks to hold")
     if refused:
         raise ValueError(
             "--resume cannot change the data or the model the checkpoint was trained on: " + "; ".join(refused)

@@ -48,7 +48,7 @@ from pidg.training.config import TrainConfig, describe_schedule
 from pidg.training.decoupling import StaticDynamicDecoupling
 from pidg.training.densification import DensificationStrategy
 from pidg.training.losses import LossTerm, StepInputs, build_loss_terms, ssim_kernel
-from pidg.training.motion_start import start_from_rigid_tracks
+from pidg.training.motion_start import TrackTargets, start_from_rigid_tracks
 from pidg.training.optim import make_optimizers, reschedule
 from pidg.training.run_folder import with_absolute_data_path
 
@@ -119,9 +119,13 @@ class Trainer:
         if config.flow.enabled:
             check_flow_viewpoints(self.scene, config.flow)
             self.flow_cache = open_flow_cache(self.scene, config.flow, Path(config.output.dir) / "flow_cache", config.output.progress)
+        if config.optim.lambda_tracks > 0 and config.optim.motion_start != "rigid_tracks":
+            raise ValueError(f"--optim.lambda_tracks {config.optim.lambda_tracks} holds the deformation to the tracks the "
+                             "motion start fits: it needs --optim.motion_start rigid_tracks")
+        tracks = None
         if config.optim.motion_start == "rigid_tracks" and model is None:  # a new run (a resumed one has its field)
-            self._start_from_rigid_tracks()
-        self.loss_terms: list[LossTerm] = build_loss_terms(config, self.flow_cache)
+            tracks = self._start_from_rigid_tracks()
+        self.loss_terms: list[LossTerm] = build_loss_terms(config, self.flow_cache, tracks)
         self.strategy = DensificationStrategy(config.densify, self.extent)
         self.densify_state = self.strategy.initialize_state(self.model.num_gaussians, self.model.device)
         self.decoupling = StaticDynamicDecoupling(
@@ -446,16 +450,16 @@ class Trainer:
                     "schedules now end at step %d", self.step, measured, iterations, o.iterations,
                     budget_seconds / 60.0, iterations)
 
-    def _start_from_rigid_tracks(self) -> None:
-        """``optim.motion_start rigid_tracks``: the deformation fitted to rigid-body tracks before step 0, or a clear
-        stop naming what the run lacks."""
+    def _start_from_rigid_tracks(self) -> TrackTargets:
+        """``optim.motion_start rigid_tracks``: the deformation fitted to rigid-body tracks before step 0 (returns
+        what it was fitted to), or a clear stop naming what the run lacks."""
         option = "--optim.motion_start rigid_tracks"
         if self.flow_cache is None:
             raise ValueError(f"{option} tracks bodies through the optical flow: turn the flow on (--flow lpfm)")
         if not any(p.requires_grad for p in self.model.deformation.parameters()):
             raise ValueError(f"{option}: the deformation ({self.config.deformation.kind}) has nothing to fit")
         try:
-            start_from_rigid_tracks(self.model.deformation, self.flow_cache, self.config)
+            return start_from_rigid_tracks(self.model.deformation, self.flow_cache, self.config)
         except ValueError as err:
             raise ValueError(f"{option}: {err}") from None
 

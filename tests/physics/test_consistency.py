@@ -109,3 +109,20 @@ def test_forward_target_is_the_move_over_the_next_training_interval(tmp_path):
         central = (model.at(frame.time + 0.5 * dt).means - model.at(frame.time - 0.5 * dt).means) / dt
     torch.testing.assert_close(loss.detach(), _independent_mismatch(model, frame.time, forward), rtol=1e-4, atol=1e-7)
     assert not torch.allclose(forward, central, rtol=1e-3, atol=0)  # the two targets differ here
+
+
+def test_forward_target_at_the_last_frame_is_the_last_interval_inside_the_recording(tmp_path):
+    """At the last training frame (t = 1) the next interval is past the recording, where nothing supervises the
+    deformation: the forward target is then the move over the interval that ends at t = 1."""
+    trainer, term = _trained_term(tmp_path, kinematic_target="forward")
+    model = trainer.model
+    frame = max(trainer.scene.train, key=lambda f: f.time)
+    assert frame.time == pytest.approx(1.0)
+    dt = model.time_axis.frame_interval
+    state = model.at(frame.time)
+    loss, _ = term.loss(StepInputs(0, frame, model, state, True), model.render_state(state, frame.camera), None)
+    with torch.no_grad():
+        inside = (state.means - model.at(frame.time - dt).means) / dt
+        past = (model.at(frame.time + dt).means - state.means) / dt
+    torch.testing.assert_close(loss.detach(), _independent_mismatch(model, frame.time, inside), rtol=1e-4, atol=1e-7)
+    assert not torch.allclose(inside, past, rtol=1e-3, atol=0)  # the move past the end is another
