@@ -102,6 +102,9 @@ class Trainer:
         retain_freed_memory()  # a step's large temporaries would otherwise be re-faulted from the OS every step
         seed_everything(config.optim.seed)
         self.extent = float(scene.bounds.extent)
+        if config.optim.lambda_tracks > 0 and config.optim.motion_start != "rigid_tracks":
+            raise ValueError(f"--optim.lambda_tracks {config.optim.lambda_tracks} holds the deformation to the tracks the "
+                             "motion start fits: it needs --optim.motion_start rigid_tracks")
         for option, weight in (("--optim.lambda_depth", config.optim.lambda_depth),
                                ("--flow.lambda_depth_change", config.flow.lambda_depth_change if config.flow.enabled else 0.0)):
             if weight > 0 and not any(f.depth is not None for f in scene.train):
@@ -119,9 +122,6 @@ class Trainer:
         if config.flow.enabled:
             check_flow_viewpoints(self.scene, config.flow)
             self.flow_cache = open_flow_cache(self.scene, config.flow, Path(config.output.dir) / "flow_cache", config.output.progress)
-        if config.optim.lambda_tracks > 0 and config.optim.motion_start != "rigid_tracks":
-            raise ValueError(f"--optim.lambda_tracks {config.optim.lambda_tracks} holds the deformation to the tracks the "
-                             "motion start fits: it needs --optim.motion_start rigid_tracks")
         tracks = None
         if config.optim.motion_start == "rigid_tracks" and model is None:  # a new run (a resumed one has its field)
             tracks = self._start_from_rigid_tracks()
