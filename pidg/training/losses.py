@@ -292,6 +292,9 @@ class TrackHoldLoss(LossTerm):
         targets = self.targets
         if targets is None or not inputs.deforming:
             return zero, {}
+        device = inputs.state.means.device
+        if targets.start.device != device:  # restored from a checkpoint (on the CPU)
+            self.targets = targets = targets.to(device)
         k = int(torch.argmin((targets.times - inputs.frame.time).abs()))
         if abs(float(targets.times[k]) - inputs.frame.time) > 1e-6:  # not one of the tracked frames' times
             return zero, {}
@@ -312,9 +315,8 @@ class TrackHoldLoss(LossTerm):
         return {"targets": targets, "generator": self.generator.get_state()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if state["targets"] is not None:
-            device = self.targets.start.device if self.targets is not None else torch.device("cpu")
-            self.targets = TrackTargets(**state["targets"]).to(device)
+        if state["targets"] is not None:  # moved to the run's device at the first step that reads them
+            self.targets = TrackTargets(**state["targets"])
         self.generator.set_state(state["generator"])
 
 

@@ -87,22 +87,22 @@ def test_a_start_where_every_body_is_lost_stops_clearly(dataset, tmp_path, monke
         Trainer(config(dataset, tmp_path / "run", "rigid_tracks"), load_scene(DataConfig(path=dataset, progress=False)))
 
 
-
 # ---- the tracks term (--optim.lambda_tracks): the start's tracks held through training ----------------------------
 
 def tracks_term(trainer: Trainer) -> TrackHoldLoss:
     return next(term for term in trainer.loss_terms if isinstance(term, TrackHoldLoss))
 
 
-def step_inputs(trainer: Trainer, frame, deforming: bool = True) -> tuple[StepInputs, torch.Tensor]:
-    """The term's inputs at ``frame``, and a render stand-in whose only use is its dtype and device."""
-    state = trainer.model.at(frame.time)
-    return StepInputs(0, frame, trainer.model, state, deforming), torch.zeros(2, 2, 3)
-
-
 class _Render:
-    def __init__(self, rgb):
-        self.rgb = rgb
+    """A render stand-in: the tracks term reads only its image's dtype and device."""
+
+    rgb = torch.zeros(2, 2, 3)
+
+
+def step_inputs(trainer: Trainer, frame, deforming: bool = True) -> tuple[StepInputs, _Render]:
+    """The term's inputs at ``frame``, and the render stand-in."""
+    state = trainer.model.at(frame.time)
+    return StepInputs(0, frame, trainer.model, state, deforming), _Render()
 
 
 def carried(trainer: Trainer, targets: TrackTargets, k: int) -> torch.Tensor:
@@ -127,21 +127,21 @@ def test_the_tracks_term_is_the_mean_absolute_position_error_at_the_frames_time(
     # targets where the field already carries the points: no error; then 0.3 off along x only: a mean of 0.1
     term.targets = TrackTargets(targets.start, carried(trainer, targets, k)[None].expand(len(targets.times), -1, -1).clone(),
                                 targets.times, torch.ones_like(targets.known))
-    inputs, rgb = step_inputs(trainer, frame)
-    value, scalars = term.loss(inputs, _Render(rgb), None)
+    inputs, render = step_inputs(trainer, frame)
+    value, scalars = term.loss(inputs, render, None)
     assert float(value.detach()) == pytest.approx(0.0, abs=1e-6)
     term.targets.positions[k, :, 0] += 0.3
-    value, scalars = term.loss(inputs, _Render(rgb), None)
+    value, scalars = term.loss(inputs, render, None)
     assert scalars["tracks"] == pytest.approx(0.1, rel=1e-4) and float(value.detach()) == pytest.approx(0.2, rel=1e-4)
     # only the points known at that time count: the others are 10 off and change nothing
     term.targets.known[k, ::2] = False
     term.targets.positions[k, ::2] += 10.0
-    assert term.loss(inputs, _Render(rgb), None)[1]["tracks"] == pytest.approx(0.1, rel=1e-4)
+    assert term.loss(inputs, render, None)[1]["tracks"] == pytest.approx(0.1, rel=1e-4)
     # a time the tracks do not hold, or a step before the deformation runs: nothing
     off_time = dataclasses.replace(frame, time=float(frame.time) + 0.01)
     for args in ((off_time, True), (frame, False)):
-        inputs, rgb = step_inputs(trainer, *args)
-        value, scalars = term.loss(inputs, _Render(rgb), None)
+        inputs, render = step_inputs(trainer, *args)
+        value, scalars = term.loss(inputs, render, None)
         assert float(value.detach()) == 0.0 and scalars == {}
 
 
@@ -161,8 +161,8 @@ def test_the_tracks_term_holds_the_deformation_and_its_tracks_survive_a_resume(d
 
     before = error()
     for step in range(400):
-        inputs, rgb = step_inputs(trainer, scene.train[step % len(scene.train)])
-        value, _ = term.loss(inputs, _Render(rgb), None)
+        inputs, render = step_inputs(trainer, scene.train[step % len(scene.train)])
+        value, _ = term.loss(inputs, render, None)
         optimizer.zero_grad()
         value.backward()
         optimizer.step(step)
