@@ -7,7 +7,9 @@ where the true motion carries it: its object is the one whose true vertex lies n
 that object's true motion from the first training frame to each later one is the Kabsch fit of its vertices (exact
 for a rigid or keyframed object; objects of other kinds, cloth and soft bodies, are not scored). Figures per body
 and in all: the position error (world units) over the frames where the body is tracked, as a share of the distance
-the truth carries the points from the first frame (0 = right, 1 = as far off as standing still); the step error, each
+the truth carries the points from the first frame (0 = right, 1 = as far off as standing still), and frame by frame
+with the interval in which it grows most (a chain carries an error forward, so that interval is where the track
+broke; whether the tracker marked it fitted says whether its own flag could have told); the step error, each
 point's move from one training frame to the next against the true move (what a flow sees), as a share of the true
 moves (0 = right, 1 = as far off as not moving); how many training intervals the body was tracked through; and the
 share of them in which a motion was fitted (the others carried at rest or at constant velocity).
@@ -46,6 +48,11 @@ class BodyScore:
     error: float | None  # mean position error over the tracked frames, world units
     relative: float | None  # pooled error / pooled true travel from the first frame
     step_relative: float | None  # pooled error of the frame-to-frame moves / pooled true moves
+    error_by_frame: list[float | None] = field(default_factory=list)  # mean position error at each training frame
+    # (world units; None where the body is not tracked or not scored)
+    worst_interval: int | None = None  # the interval k (frame k to k + 1) in which that error grows most
+    worst_growth: float | None = None  # how much it grows there (world units)
+    worst_fitted: bool | None = None  # whether the tracker fitted a motion in that interval
 
 
 @dataclass
@@ -105,6 +112,10 @@ def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float |
         mask = scored[:, rows]
         body_error, body_travel = error[:, rows][mask], travel[:, rows][mask]
         tracked = int(tracks.known[:, rows].all(dim=1).sum()) - 1
+        by_frame = [float(error[k, rows][mask[k]].mean()) if bool(mask[k].any()) else None for k in range(len(mask))]
+        growth = [(after - before, k) for k, (before, after) in enumerate(zip(by_frame[:-1], by_frame[1:]))
+                  if before is not None and after is not None]
+        worst_growth, worst = max(growth) if growth and max(growth)[0] > 0 else (None, None)
         bodies.append(BodyScore(
             body=bi, object=truth.objects[main].name if truth.objects[main].kind in RIGID_KINDS else "",
             points=int(rows.sum()), on_object=float(counts[main]) / max(int(rows.sum()), 1), tracked_intervals=tracked,
@@ -112,6 +123,8 @@ def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float |
             error=float(body_error.mean()) if len(body_error) else None,
             relative=_share(body_error, body_travel),
             step_relative=_share(step_error[:, rows][step_scored[:, rows]], step[:, rows][step_scored[:, rows]]),
+            error_by_frame=by_frame, worst_interval=worst, worst_growth=worst_growth,
+            worst_fitted=None if worst is None else bool(tracks.found[worst, bi]),
         ))
     not_scored = [o.name for o in truth.objects if o.kind not in RIGID_KINDS]
     return _share(error[scored], travel[scored]), _share(step_error[step_scored], step[step_scored]), bodies, not_scored
@@ -139,6 +152,14 @@ def run_rigid_tracks_bench(dataset: Path, seed: int = 42, out: Path | None = Non
     return result
 
 
+def _worst(body: BodyScore) -> str:
+    """'interval k (+growth, fitted|carried)', or '-' where the body is not scored or its error never grows."""
+    if body.worst_interval is None:
+        return "-"
+    how = "fitted" if body.worst_fitted else "carried"
+    return f"interval {body.worst_interval} ({body.worst_growth:+.3f}, {how})"
+
+
 def format_result(result: TrackBenchResult) -> str:
     def num(x: float | None, digits: int = 3) -> str:
         return "-" if x is None else f"{x:.{digits}f}"
@@ -147,12 +168,13 @@ def format_result(result: TrackBenchResult) -> str:
              f"intervals, {result.seconds:.0f} s; relative position error {num(result.relative)}, step error "
              f"{num(result.step_relative)} (0 = the truth, 1 = no better "
              f"than standing still), {100 * result.tracked_share:.0f} % of (point, frame) entries tracked",
-             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative | step |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative | step | "
+             "error grows most in |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for b in result.bodies:
         lines.append(f"| {b.body} | {b.object or '(not rigid)'} | {b.points} | {100 * b.on_object:.0f} % | "
                      f"{b.tracked_intervals}/{result.intervals} | {100 * b.fitted:.0f} % | {num(b.error)} | "
-                     f"{num(b.relative)} | {num(b.step_relative)} |")
+                     f"{num(b.relative)} | {num(b.step_relative)} | {_worst(b)} |")
     if result.not_scored:
         lines.append("not scored (not rigid): " + ", ".join(result.not_scored))
     return "\n".join(lines)

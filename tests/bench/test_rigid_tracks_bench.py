@@ -63,5 +63,14 @@ def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
     assert math.isclose(bodies[0].fitted, 0.75) and bodies[1].fitted == 1.0
     assert math.isclose(bodies[0].error, 0.05 * 4 / 5, rel_tol=1e-5)  # 0 at the first frame, 0.05 at the four others
     assert bodies[2].step_relative is None
+    # frame by frame: the error appears in the first interval (which body 0's tracker carried, body 1's fitted)
+    assert bodies[0].error_by_frame[0] == 0.0
+    assert all(math.isclose(e, 0.05, rel_tol=1e-5) for e in bodies[0].error_by_frame[1:])
+    assert bodies[1].error_by_frame[4] is None and bodies[2].error_by_frame == [None] * frames
+    assert (bodies[0].worst_interval, bodies[0].worst_fitted) == (0, False)
+    assert (bodies[1].worst_interval, bodies[1].worst_fitted) == (0, True)
+    assert math.isclose(bodies[1].worst_growth, 0.05, rel_tol=1e-5)
+    assert bodies[2].worst_interval is None
     text = format_result(TrackBenchResult("scene", 4, 1.0, relative, step_relative, 0.95, bodies, not_scored))
     assert "| 2 | (not rigid) |" in text and "not scored (not rigid): sheet" in text
+    assert "interval 0 (+0.050, carried) |" in text and "interval 0 (+0.050, fitted) |" in text
