@@ -169,7 +169,7 @@ def format_result(result: TrackBenchResult) -> str:
              f"{num(result.step_relative)} (0 = the truth, 1 = no better "
              f"than standing still), {100 * result.tracked_share:.0f} % of (point, frame) entries tracked",
              "| body | object | points | on it | tracked intervals | fitted | error (world) | relative | step | "
-             "error grows most in |",
+             "error (world) grows most in |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for b in result.bodies:
         lines.append(f"| {b.body} | {b.object or '(not rigid)'} | {b.points} | {100 * b.on_object:.0f} % | "
