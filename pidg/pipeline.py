@@ -111,7 +111,7 @@ def evaluate_motion_and_save(
         save_png(with_titles(image, truth_flow_titles(flows, scale)), path)
 
     evaluation = evaluate_motion(model, scene.frames(split), truth, split, radius, velocity_integration=integration,
-                                 on_frame=save_picture)
+                                 on_frame=save_picture, train_times=[f.time for f in scene.train])
     if flow is not None:
         cache = flow_cache or open_flow_cache(scene, flow, Path(run_dir) / "flow_cache", progress=False)
         evaluation.target = evaluate_flow_target(model, cache, flow, truth)

@@ -33,6 +33,18 @@ frame's camera at the times that have a sample at t' too); a curved path makes i
 go below it by that definition. Beside it the same with the trapezoid (v_gt(t) + v_gt(t')) / 2, a second-order
 step like ``--flow.velocity_integration midpoint``'s: what is left of that floor with a second-order rule.
 
+**What the training times determine (given ``train_times``).** A model can be right at every training image's time
+and still wrong between them. The floor of that: the true vertex positions known only at the training times, carried
+to t and t' by interpolation between them (:func:`positions_between`: linear between the two around each time, or the
+cubic through the four nearest), their flow against the true displacement (mean pixels over every vertex in front of
+the frame's camera, as the first-order floor; 0 on the training views, and None where t or t' lies outside the
+training times). A view whose floor is low is decided by the training images; its error is the model's, not the
+split's. Where it lies, at the matched vertices whose Gaussian the view sees (:func:`seen_gaussians`): the model's
+motion over [t, t'] against the truth's, projected (px), and its two parts (:func:`_training_times_split`): at the
+training times (both motions replaced by their linear interpolation between the training times around t and t')
+and between them (the rest: how the model's path bends between training times against the truth's). A model right
+at the training times that moves straight between them scores the linear floor in the second part.
+
 **3D tracking (identity over the recording).** At each scored frame's time that has a vertex sample (the anchor),
 every vertex is matched to its nearest Gaussian as above; those Gaussians are then followed through every other
 ground-truth sample time in [0, 1], and their displacement since the anchor is compared with their vertex's:
@@ -70,14 +82,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as nn_functional
 from torch import Tensor
 
-from pidg.data.motion_gt import MotionGroundTruth, composited_flow, projected_displacement, resize_flow
+from pidg.data.motion_gt import MotionGroundTruth, VertexMotion, composited_flow, projected_displacement, resize_flow
 from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.charts import svg_chart
 from pidg.flow import FlowCache, FlowConfig, FlowTarget, VelocityIntegration, interval_velocity, model_flow_target
@@ -157,6 +169,15 @@ class VelocityScores:
     truth_velocity_flow_px: float | None = None  # the true velocity's first-order flow vs the true displacement (px)
     # the same with the trapezoid of the true velocities at t and t' (second order, as the midpoint rule)
     truth_velocity_flow_second_order_px: float | None = None
+    # the true positions known at the training times only, interpolated to t and t' linearly / by the cubic through
+    # the four nearest: their flow vs the true displacement (px; None without training times)
+    training_times_linear_flow_px: float | None = None
+    training_times_cubic_flow_px: float | None = None
+    # the model's motion over [t, t'] at the matched vertices its view sees, against the truth's (px): the whole error,
+    # its part at the training times and its part between them (how the paths bend between the training times)
+    seen_flow_px: float | None = None
+    seen_flow_at_training_times_px: float | None = None
+    seen_flow_between_training_times_px: float | None = None
 
 
 @dataclass
@@ -267,6 +288,12 @@ class MotionEvaluation:
             f"{_num(v.field_across_ray)}, zero {_num(v.zero_along_ray)} / {_num(v.zero_across_ray)}; the true "
             f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} (second order "
             f"{_px(v.truth_velocity_flow_second_order_px)}) from the true displacement"
+            + ("" if v.training_times_linear_flow_px is None else
+               f"; the truth known at the training times only, interpolated linearly "
+               f"{_px(v.training_times_linear_flow_px)} (cubic {_px(v.training_times_cubic_flow_px)})")
+            + ("" if v.seen_flow_px is None else
+               f"; the model's motion at the seen matched vertices {_px(v.seen_flow_px)} off, at the training times "
+               f"{_px(v.seen_flow_at_training_times_px)}, between them {_px(v.seen_flow_between_training_times_px)}")
             + ("" if self.tracking is None else f"; {_tracking_text(self.tracking)}")
             + ("" if self.spin is None else f"; {_spin_text(self.spin)}")
             + ("" if self.target is None else f"; {_target_text(self.target)}")
@@ -274,10 +301,11 @@ class MotionEvaluation:
 
     def per_frame_chart(self) -> str:
         """The flow errors of every scored frame against its dataset time, as an SVG line chart (EPE in px): where
-        in the recording the learned motion goes wrong (a collision, a fast phase), beside zero motion's error and,
-        where scored, the flow target's error on the training pairs (where the flow loss itself teaches wrong)."""
+        in the recording the learned motion goes wrong (a collision, a fast phase), beside zero motion's error, the
+        floor of what the training times determine (the truth known there only, linear between them) and, where
+        scored, the flow target's error on the training pairs (where the flow loss itself teaches wrong)."""
         names = {FLOW_KEYS["motion"]: "motion flow (deformation)", FLOW_KEYS["velocity"]: "velocity flow (field v)",
-                 FLOW_KEYS["zero"]: "zero motion"}
+                 FLOW_KEYS["zero"]: "zero motion", "training_times_linear_px": "truth known at training times (linear)"}
         rows = sorted((r for r in self.per_frame if r.get(FLOW_KEYS["zero"]) is not None), key=lambda r: r["time"])
         series = {label: [(r["time"], r[key]) for r in rows if r.get(key) is not None] for key, label in names.items()}
         if self.target is not None:
@@ -556,6 +584,7 @@ def evaluate_motion(
     speed_floor: float | None = None,
     velocity_integration: VelocityIntegration = "euler",
     on_frame: Callable[[FrameFlows], None] | None = None,
+    train_times: Sequence[float] | None = None,
 ) -> MotionEvaluation:
     """Score the model's motion on ``frames`` against ``truth`` (see the module docstring for every definition).
 
@@ -564,7 +593,9 @@ def evaluate_motion(
     ``speed_floor``: smallest true speed counted in the relative error, world units per unit of dataset time
     (default :data:`SPEED_FLOOR_FRACTION` of the mean true speed at the scored times); ``velocity_integration``: the
     rule the velocity flow carries particles by, the run's ``FlowConfig.velocity_integration``; ``on_frame``: called
-    with each scored frame's flows (pictures: :func:`pidg.evaluation.visualize.truth_flow_comparison`)."""
+    with each scored frame's flows (pictures: :func:`pidg.evaluation.visualize.truth_flow_comparison`);
+    ``train_times``: the run's training images' dataset times, for the floor of what they determine (the module
+    docstring; skipped without them)."""
     if radius is not None and not radius > 0:
         raise ValueError(f"motion evaluation: the matching radius must be > 0 world units, got {radius}")
     radius = default_radius(truth) if radius is None else float(radius)
@@ -573,7 +604,8 @@ def evaluate_motion(
     pixels, scored, skipped, per_frame = 0, 0, [], []
     gathered: dict[str, list[Tensor]] = {
         "speed_all": [], "speed": [], "distance": [], "deformation": [], "field": [], "ray": [], "v_gt": [], "euler": [],
-        "second_order": [],
+        "second_order": [], "training_times_linear": [], "training_times_cubic": [], "seen_flow": [],
+        "seen_flow_at_training_times": [], "seen_flow_between_training_times": [],
     }
     matches: dict[float, tuple[Tensor, Tensor, Tensor]] = {}  # sample time -> matched vertices, their Gaussians, seen
     for frame in frames:
@@ -594,7 +626,7 @@ def evaluate_motion(
             record.update(next_time=gt.next_time, pixels=n)
             pixels, scored = pixels + n, scored + 1
         if frame.time not in matches and _has_sample(truth, frame.time):
-            scores, matches[frame.time] = _score_vertices(model, truth, frame, radius, h, gathered)
+            scores, matches[frame.time] = _score_vertices(model, truth, frame, radius, h, gathered, train_times)
             record.update(scores)
         per_frame.append(record)
 
@@ -792,8 +824,91 @@ def _has_sample(truth: MotionGroundTruth, t: float) -> bool:
     return True
 
 
+InterpolationOrder = Literal["linear", "cubic"]
+
+
+def interpolation_weights(known_times: Sequence[float], t: float, order: InterpolationOrder) -> list[tuple[float, float]] | None:
+    """(known time, weight) pairs that interpolate a motion known only at ``known_times`` to dataset time ``t``:
+    linear between the two known times around ``t``, or the cubic through the four nearest (Lagrange; fewer where
+    fewer are known); one weight 1 at a known time. None outside the known times: nothing there is interpolation."""
+    times = np.array(sorted(set(float(x) for x in known_times)))
+    if len(times) == 0 or t < times[0] - _TIME_TOL or t > times[-1] + _TIME_TOL:
+        return None
+    exact = np.abs(times - t) <= _TIME_TOL
+    if exact.any():
+        return [(float(times[exact][0]), 1.0)]
+    after = int(np.searchsorted(times, t))  # times[after - 1] < t < times[after]
+    points = 2 if order == "linear" else min(4, len(times))
+    first = min(max(after - points // 2, 0), len(times) - points)
+    window = times[first:first + points]
+    return [(float(t_m), float(np.prod((t - np.delete(window, m)) / (t_m - np.delete(window, m)))))
+            for m, t_m in enumerate(window)]
+
+
+def positions_between(vertices: VertexMotion, known_times: Sequence[float], t: float, order: InterpolationOrder) -> np.ndarray | None:
+    """[V, 3] float64: the vertices' positions at dataset time ``t`` as a motion known only at ``known_times``
+    (sample times of ``vertices``) puts them (:func:`interpolation_weights`); None outside the known times."""
+    weights = interpolation_weights(known_times, t, order)
+    if weights is None:
+        return None
+    return sum(w * vertices.positions[vertices.index_of(time, _TIME_TOL)].astype(np.float64) for time, w in weights)
+
+
+def _training_times_floor(
+    truth: MotionGroundTruth, camera: Camera, points: Tensor, t: float, known: Sequence[float], order: InterpolationOrder,
+) -> Tensor | None:
+    """Per vertex in front of ``camera`` (px): the flow of the truth known at the training times ``known`` (vertex
+    sample times) only, interpolated to t and t + frame_interval (:func:`positions_between`), against the true
+    displacement from ``points`` (the vertices at t). None where t or t + interval lies outside the known times."""
+    ends = [positions_between(truth.vertices, known, time, order) for time in (t, t + truth.frame_interval)]
+    if ends[0] is None or ends[1] is None:
+        return None
+    later = torch.from_numpy(truth.vertices.positions[truth.vertices.index_of(t + truth.frame_interval, _TIME_TOL)]).to(points)
+    start, end = (torch.from_numpy(x).to(points) for x in ends)
+    ahead = camera.project_points(points)[1] > camera.near
+    flow = projected_displacement(camera, start, end) - projected_displacement(camera, points, later)
+    return flow.norm(dim=-1)[ahead]
+
+
+def _training_times_split(
+    model: DynamicGaussians, truth: MotionGroundTruth, camera: Camera, t: float, known: Sequence[float], vertices: Tensor,
+    gaussians: Tensor,
+) -> tuple[Tensor, Tensor, Tensor] | None:
+    """Per vertex (indices ``vertices``, matched to ``gaussians``), the model's motion over [t, t + frame_interval]
+    against the truth's, projected into ``camera`` (px): the whole error, its part at the training times ``known``
+    (both motions replaced by their linear interpolation between the training times around t and t + interval) and
+    the rest, between them (how the model's path bends between training times against the truth's). The two parts
+    add up to the whole as vectors. None where t or t + interval lies outside the training times."""
+    ends = (t, t + truth.frame_interval)
+    weights = [interpolation_weights(known, time, "linear") for time in ends]
+    if weights[0] is None or weights[1] is None:
+        return None
+    model_means: dict[float, Tensor] = {}
+
+    def model_at(time: float) -> Tensor:
+        if time not in model_means:
+            model_means[time] = model.at(time).means[gaussians]
+        return model_means[time]
+
+    def truth_at(time: float) -> Tensor:
+        return torch.from_numpy(truth.vertices.positions[truth.vertices.index_of(time, _TIME_TOL)]).to(model.device)[vertices]
+
+    def linear_move(at: Callable[[float], Tensor]) -> Tensor:
+        return sum(w * at(time) for time, w in weights[1]) - sum(w * at(time) for time, w in weights[0])
+
+    whole = (model_at(ends[1]) - model_at(ends[0])) - (truth_at(ends[1]) - truth_at(ends[0]))
+    at_training_times = linear_move(model_at) - linear_move(truth_at)
+    start = truth_at(ends[0])
+
+    def pixels(offset: Tensor) -> Tensor:
+        return projected_displacement(camera, start, start + offset).norm(dim=-1)
+
+    return pixels(whole), pixels(at_training_times), pixels(whole - at_training_times)
+
+
 def _score_vertices(
-    model: DynamicGaussians, truth: MotionGroundTruth, frame: Frame, radius: float, h: float, gathered: dict[str, list[Tensor]]
+    model: DynamicGaussians, truth: MotionGroundTruth, frame: Frame, radius: float, h: float, gathered: dict[str, list[Tensor]],
+    train_times: Sequence[float] | None = None,
 ) -> tuple[dict[str, float | None], tuple[Tensor, Tensor]]:
     """Match the vertex sample at the frame's time to the model's Gaussians and add its speeds, distances, velocity
     errors, true velocities and unit rays from the frame's camera to the matched vertices to ``gathered``; the
@@ -826,6 +941,17 @@ def _score_vertices(
             gathered[key].append(err)
         record[f"{key}_mae"] = None if err is None else _mean(err.norm(dim=-1))
     seen = seen_gaussians(model, state, frame.camera)[found["gaussians"]]
+    known = [x for x in train_times or () if _has_sample(truth, x)]
+    if known and _has_sample(truth, t + truth.frame_interval):
+        parts = {f"training_times_{order}": _training_times_floor(truth, frame.camera, points, t, known, order)
+                 for order in ("linear", "cubic")}
+        split = _training_times_split(model, truth, frame.camera, t, known, found["hit"].nonzero().squeeze(1)[seen],
+                                      found["gaussians"][seen])
+        parts.update(zip(("seen_flow", "seen_flow_at_training_times", "seen_flow_between_training_times"), split or (None,) * 3))
+        for key, part in parts.items():
+            if part is not None:
+                gathered[key].append(part)
+            record[f"{key}_px"] = None if part is None else _mean(part)
     return record, (found["hit"].nonzero().squeeze(1), found["gaussians"], seen)
 
 
@@ -872,5 +998,10 @@ def _velocity_scores(
         field_across_ray=f_ray[1], zero_along_ray=z_ray[0], zero_across_ray=z_ray[1],
         truth_velocity_flow_px=_mean(cat("euler")) if gathered["euler"] else None,
         truth_velocity_flow_second_order_px=_mean(cat("second_order")) if gathered["second_order"] else None,
+        training_times_linear_flow_px=_mean(cat("training_times_linear")) if gathered["training_times_linear"] else None,
+        training_times_cubic_flow_px=_mean(cat("training_times_cubic")) if gathered["training_times_cubic"] else None,
+        seen_flow_px=_mean(cat("seen_flow")) if gathered["seen_flow"] else None,
+        seen_flow_at_training_times_px=_mean(cat("seen_flow_at_training_times")) if gathered["seen_flow"] else None,
+        seen_flow_between_training_times_px=_mean(cat("seen_flow_between_training_times")) if gathered["seen_flow"] else None,
     )
 

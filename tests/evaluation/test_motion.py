@@ -33,6 +33,7 @@ from pidg.evaluation.motion import (
     evaluate_flow_target,
     evaluate_motion,
     model_flows,
+    positions_between,
     rendered_weights,
     rotation_angle_deg,
     seen_gaussians,
@@ -381,6 +382,69 @@ def test_the_velocity_flow_floor_is_the_true_velocitys_own_first_order_error(tmp
     assert evaluate_motion(plane_model(None), frames, apart).velocity.truth_velocity_flow_px is None
 
 
+def _cubic_motion(times: np.ndarray) -> VertexMotion:
+    """Two vertices on known cubic paths (world units) sampled at ``times``."""
+    t = np.asarray(times, np.float64)[:, None]
+    first = np.concatenate([0.5 + 2 * t - 3 * t**2 + 4 * t**3, -t**2, 1 + 0 * t], axis=1)
+    second = np.concatenate([t**3, 0.2 * t, 2 - t], axis=1)
+    positions = np.stack([first, second], axis=1).astype(np.float32)
+    return VertexMotion(t[:, 0], positions, np.zeros_like(positions), np.zeros((0, 3), np.int64))
+
+
+def test_positions_between_known_times_are_exact_for_lines_and_cubics_and_none_outside():
+    samples = np.array([0.0, 0.1, 0.2, 0.35, 0.5, 0.6, 0.9, 1.0])
+    motion = _cubic_motion(samples)
+    known = [0.0, 0.2, 0.35, 0.6, 0.9, 1.0]  # 0.1 and 0.5 held out, the spacing uneven
+    for t in (0.1, 0.5):
+        truth = motion.positions[motion.index_of(t)]
+        np.testing.assert_allclose(positions_between(motion, known, t, "cubic"), truth, atol=1e-5)  # a cubic: exact
+    # linear between the two known times a, b around t: on the quadratic y = -t^2 off by (t - a)(t - b) (closed form)
+    a, b = 0.35, 0.6
+    linear = positions_between(motion, known, 0.5, "linear")
+    assert linear[0, 1] - motion.positions[motion.index_of(0.5), 0, 1] == pytest.approx((0.5 - a) * (0.5 - b), abs=1e-6)
+    np.testing.assert_allclose(linear[1, 1:], motion.positions[motion.index_of(0.5), 1, 1:], atol=1e-6)  # lines: exact
+    np.testing.assert_array_equal(positions_between(motion, known, 0.2, "linear"), motion.positions[2])  # a known time
+    assert positions_between(motion, [0.2, 0.35], 0.1, "cubic") is None  # before the first known time
+    assert positions_between(motion, [0.2, 0.35], 0.5, "linear") is None  # after the last
+    # two known times only: the cubic falls back to the line through them
+    np.testing.assert_allclose(positions_between(motion, [0.35, 0.6], 0.5, "cubic"), linear, atol=1e-9)
+
+
+def test_the_floor_of_the_training_times_is_what_interpolating_the_truth_between_them_misses(tmp_path):
+    times = tuple(k * DT for k in range(5))
+    truth, frames = write_truth(tmp_path, times=times)
+    # the true path accelerates along x in the plane z = Z: x(t) = x0 + C t^2 (world units)
+    c = 2.0
+    start = truth.vertices.positions[0].copy()
+    truth.vertices.positions = np.stack([start + np.array([c * t**2, 0.0, 0.0], np.float32) for t in times])
+    train = [times[0], times[2], times[3], times[4]]  # the view at DT held out; its next frame, 2 DT, is trained on
+    velocity = evaluate_motion(plane_model(None), frames[1:2], truth, train_times=train).velocity
+    # linear between 0 and 2 DT puts the start at 2 C DT^2 instead of C DT^2; the end is known: off by C DT^2 in x
+    assert velocity.training_times_linear_flow_px == pytest.approx(CAMERA.fx * c * DT**2 / Z, rel=1e-4)
+    assert velocity.training_times_cubic_flow_px == pytest.approx(0.0, abs=1e-4)  # a cubic through 4 holds a parabola
+    assert "interpolated linearly" in evaluate_motion(plane_model(None), frames[1:2], truth, train_times=train).summary()
+    # a training view's own time is known: nothing to interpolate
+    on_train = evaluate_motion(plane_model(None), frames[2:3], truth, train_times=train)
+    assert on_train.velocity.training_times_linear_flow_px == pytest.approx(0.0, abs=1e-6)
+    assert on_train.per_frame[0]["training_times_cubic_px"] == pytest.approx(0.0, abs=1e-6)
+    # the model translates uniformly and the truth is that plus C t^2 along x: over [DT, 2 DT] the model misses
+    # 3 C DT^2, of which the training times (linear between 0 and 2 DT) carry 2 C DT^2 and the bend C DT^2
+    truth.vertices.positions = truth.vertices.positions + np.stack(
+        [np.broadcast_to(np.array([t * VELOCITY[0].item(), t * VELOCITY[1].item(), 0.0], np.float32), start.shape) for t in times])
+    split = evaluate_motion(plane_model(None), frames[1:2], truth, train_times=train)
+    unit = CAMERA.fx * c * DT**2 / Z  # px of C DT^2 along x at depth Z
+    assert split.velocity.seen_flow_px == pytest.approx(3 * unit, rel=1e-4)
+    assert split.velocity.seen_flow_at_training_times_px == pytest.approx(2 * unit, rel=1e-4)
+    assert split.velocity.seen_flow_between_training_times_px == pytest.approx(unit, rel=1e-4)
+    assert split.per_frame[0]["seen_flow_between_training_times_px"] == pytest.approx(unit, rel=1e-4)
+    assert "between them" in split.summary()
+    # without the training times (or outside them) there is no floor
+    assert evaluate_motion(plane_model(None), frames[1:2], truth).velocity.training_times_linear_flow_px is None
+    outside = evaluate_motion(plane_model(None), frames[1:2], truth, train_times=train[1:]).velocity
+    assert outside.training_times_linear_flow_px is None and outside.training_times_cubic_flow_px is None
+    assert outside.seen_flow_px is None and outside.seen_flow_between_training_times_px is None
+
+
 def test_truth_at_a_larger_resolution_is_resized_to_the_images(tmp_path):
     truth, frames = write_truth(tmp_path, scale=2)
     f = evaluate_motion(plane_model(None), frames, truth).flow
@@ -597,6 +661,25 @@ def test_cli_eval_motion_gt_writes_json_and_one_line(tiny_run, capsys):
     largest = max(max(r["track_error"], r["track_travel"]) for r in data["per_frame"])
     assert min(y for line in tracks for _, y in line) == pytest.approx(12.0, abs=0.051)  # the largest at the top
     assert largest > 0 and data["tracking"]["anchors"] == 2
+
+
+@pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
+def test_cli_eval_motion_gt_passes_the_runs_training_times(tiny_run, capsys):
+    """On the training views every scored time and the next are training times: the floor of what they determine
+    is 0 there (and it is only computed when the run's training times reach the evaluation)."""
+    from pidg.cli import main
+
+    run = tiny_run / "run"
+    assert main(["eval", str(run), "--split", "train", "--motion-gt", "--lpips", "none"]) == 0
+    data = json.loads((run / "eval_train" / "motion_gt.json").read_text())
+    floors = [r["training_times_linear_px"] for r in data["per_frame"] if "training_times_linear_px" in r]
+    assert floors and all(f == pytest.approx(0.0, abs=1e-6) for f in floors)
+    assert data["velocity"]["training_times_cubic_flow_px"] == pytest.approx(0.0, abs=1e-6)
+    # the model's error there is all at the training times, none between them
+    v = data["velocity"]
+    assert v["seen_flow_px"] > 0 and v["seen_flow_at_training_times_px"] == pytest.approx(v["seen_flow_px"], rel=1e-5)
+    assert v["seen_flow_between_training_times_px"] == pytest.approx(0.0, abs=1e-5)
+    assert "interpolated linearly 0.000 px" in capsys.readouterr().out
 
 
 def _flat_index(data: dict, value: float) -> int:
