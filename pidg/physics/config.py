@@ -48,6 +48,11 @@ class PhysicsConfig:
     interval either side: the particles' velocity, which the midpoint velocity flow integrates); forward, its move over
     the next training-frame interval (x(t + dt) - x(t)) / dt, what the paper's first-order (euler) velocity flow
     x + v dt must match where a body turns or accelerates."""
+    kinematic_time_jitter: Annotated[float, NON_NEGATIVE] = 0.0
+    """Where in time L_kin teaches v: at the step frame's time moved by a uniform offset of up to half this many
+    training-frame intervals either way (clamped to [0, 1]; the particles deformed to that time), so v learns the
+    particles' velocity between the training times too, which L_kin and L_CMR at the frame's time do not reach (2
+    reaches a held-out image between two training frames); 0: at the frame's time. An extension, off by default."""
     density: Annotated[float, POSITIVE] = 1.0
     """rho, in mass per world volume (paper: 1)."""
     detach_positions: bool = False

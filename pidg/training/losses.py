@@ -256,8 +256,7 @@ class ParticleVelocityLoss(_PhysicsParticleTerm):
             return render.rgb.new_zeros(()), {}
         picked = sample_rows(candidates.numel(), self.config.samples, self.generator)
         rows = (candidates if picked is None else candidates[picked]).to(inputs.state.means.device)
-        t = inputs.frame.time
-        means = inputs.state.means.detach()[rows]
+        t, means = self._sample_time(inputs, rows)
         with torch.no_grad():
             if self.config.kinematic_target == "forward":
                 target = particle_step_velocity(model, t, means, rows)
@@ -266,6 +265,18 @@ class ParticleVelocityLoss(_PhysicsParticleTerm):
         v = model.velocities(t, means=means, rows=rows)
         mismatch = velocity_mismatch(v, target, model.time_axis, field.normalize.half_extent)
         return self.config.lambda_kinematic * mismatch, {"kinematic": float(mismatch.detach())}
+
+    def _sample_time(self, inputs: StepInputs, rows: Tensor) -> tuple[float, Tensor]:
+        """The dataset time this step teaches v at and the particles ``rows`` there (detached): the frame's time,
+        or with ``kinematic_time_jitter`` a time drawn around it (``PhysicsConfig.kinematic_time_jitter``)."""
+        t, jitter = inputs.frame.time, self.config.kinematic_time_jitter
+        if jitter > 0:
+            offset = (float(torch.rand((), generator=self.generator)) - 0.5) * jitter * inputs.model.time_axis.frame_interval
+            drawn = min(max(t + offset, 0.0), 1.0)
+            if drawn != t:
+                with torch.no_grad():
+                    return drawn, inputs.model.at(drawn, rows=rows).means
+        return t, inputs.state.means.detach()[rows]
 
 
 #: Tracked points the tracks term deforms a step (of ~10,000 on the generated rigid and kinematic scenes, still

@@ -126,3 +126,34 @@ def test_forward_target_at_the_last_frame_is_the_last_interval_inside_the_record
         past = (model.at(frame.time + dt).means - state.means) / dt
     torch.testing.assert_close(loss.detach(), _independent_mismatch(model, frame.time, inside), rtol=1e-4, atol=1e-7)
     assert not torch.allclose(inside, past, rtol=1e-3, atol=0)  # the move past the end is another
+
+
+def test_time_jitter_teaches_v_at_a_time_drawn_between_the_training_frames(tmp_path):
+    """``kinematic_time_jitter``: L_kin at the frame's time moved by a uniform draw of up to half a training-frame
+    interval either way (jitter 1), the particles deformed to that time: v is taught between the frames too."""
+    trainer, term = _trained_term(tmp_path, kinematic_time_jitter=1.0)
+    model, frame = trainer.model, trainer.scene.train[2]
+    dt = model.time_axis.frame_interval
+    state = model.at(frame.time)
+    drawn = []
+    for _ in range(6):
+        replay = torch.Generator()
+        replay.set_state(term.generator.get_state())  # all 300 particles are sampled: the offset is the only draw
+        t = frame.time + (float(torch.rand((), generator=replay)) - 0.5) * dt
+        loss, _ = term.loss(StepInputs(0, frame, model, state, True), model.render_state(state, frame.camera), None)
+        with torch.no_grad():
+            central = (model.at(t + 0.5 * dt).means - model.at(t - 0.5 * dt).means) / dt
+        torch.testing.assert_close(loss.detach(), _independent_mismatch(model, t, central), rtol=1e-4, atol=1e-7)
+        drawn.append(t - frame.time)
+    assert all(abs(d) <= 0.5 * dt for d in drawn) and max(drawn) - min(drawn) > 0.1 * dt  # drawn, not fixed
+    # clamped to the recording: around the first frame (t = 0) no draw falls before it
+    first = min(trainer.scene.train, key=lambda f: f.time)
+    start = model.at(first.time)
+    for _ in range(4):
+        replay = torch.Generator()
+        replay.set_state(term.generator.get_state())
+        t = max(first.time + (float(torch.rand((), generator=replay)) - 0.5) * dt, 0.0)
+        loss, _ = term.loss(StepInputs(0, first, model, start, True), model.render_state(start, first.camera), None)
+        with torch.no_grad():
+            target = model.motion_velocity(t, 0.5 * dt)
+        torch.testing.assert_close(loss.detach(), _independent_mismatch(model, t, target), rtol=1e-4, atol=1e-7)
