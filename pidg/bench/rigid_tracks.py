@@ -115,7 +115,8 @@ def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float |
         by_frame = [float(error[k, rows][mask[k]].mean()) if bool(mask[k].any()) else None for k in range(len(mask))]
         growth = [(after - before, k) for k, (before, after) in enumerate(zip(by_frame[:-1], by_frame[1:]))
                   if before is not None and after is not None]
-        worst_growth, worst = max(growth) if growth and max(growth)[0] > 0 else (None, None)
+        largest = max(growth, default=None)
+        worst_growth, worst = largest if largest is not None and largest[0] > 0 else (None, None)
         bodies.append(BodyScore(
             body=bi, object=truth.objects[main].name if truth.objects[main].kind in RIGID_KINDS else "",
             points=int(rows.sum()), on_object=float(counts[main]) / max(int(rows.sum()), 1), tracked_intervals=tracked,

@@ -855,19 +855,17 @@ def positions_between(vertices: VertexMotion, known_times: Sequence[float], t: f
 
 
 def _training_times_floor(
-    truth: MotionGroundTruth, camera: Camera, points: Tensor, t: float, known: Sequence[float], order: InterpolationOrder,
+    truth: MotionGroundTruth, camera: Camera, t: float, known: Sequence[float], order: InterpolationOrder, shown: Tensor,
+    ahead: Tensor,
 ) -> Tensor | None:
-    """Per vertex in front of ``camera`` (px): the flow of the truth known at the training times ``known`` (vertex
-    sample times) only, interpolated to t and t + frame_interval (:func:`positions_between`), against the true
-    displacement from ``points`` (the vertices at t). None where t or t + interval lies outside the known times."""
+    """Per vertex in front of ``camera`` (``ahead``; px): the flow of the truth known at the training times ``known``
+    (vertex sample times) only, interpolated to t and t + frame_interval (:func:`positions_between`), against the
+    true displacement's flow ``shown``. None where t or t + interval lies outside the known times."""
     ends = [positions_between(truth.vertices, known, time, order) for time in (t, t + truth.frame_interval)]
     if ends[0] is None or ends[1] is None:
         return None
-    later = torch.from_numpy(truth.vertices.positions[truth.vertices.index_of(t + truth.frame_interval, _TIME_TOL)]).to(points)
-    start, end = (torch.from_numpy(x).to(points) for x in ends)
-    ahead = camera.project_points(points)[1] > camera.near
-    flow = projected_displacement(camera, start, end) - projected_displacement(camera, points, later)
-    return flow.norm(dim=-1)[ahead]
+    start, end = (torch.from_numpy(x).to(shown) for x in ends)
+    return (projected_displacement(camera, start, end) - shown).norm(dim=-1)[ahead]
 
 
 def _training_times_split(
@@ -887,7 +885,7 @@ def _training_times_split(
 
     def model_at(time: float) -> Tensor:
         if time not in model_means:
-            model_means[time] = model.at(time).means[gaussians]
+            model_means[time] = model.at(time, rows=gaussians).means  # only the matched Gaussians
         return model_means[time]
 
     def truth_at(time: float) -> Tensor:
@@ -925,7 +923,10 @@ def _score_vertices(
     gathered["distance"].append(found["distance"])
     gathered["ray"].append(nn_functional.normalize(points[found["hit"]] - frame.camera.camera_center.to(points), dim=-1))
     gathered["v_gt"].append(v_gt[found["hit"]])
-    if _has_sample(truth, t + truth.frame_interval):  # the true velocity's own flows over one interval
+    known = [x for x in train_times or () if _has_sample(truth, x)]
+    has_next = _has_sample(truth, t + truth.frame_interval)
+    parts: dict[str, Tensor | None] = {}  # the floor of the training times and the model's error split (px)
+    if has_next:  # the true velocity's own flows over one interval
         k1 = truth.vertices.index_of(t + truth.frame_interval, _TIME_TOL)
         later = torch.from_numpy(truth.vertices.positions[k1]).to(points)
         v_later = torch.from_numpy(truth.vertices.velocities[k1]).to(points)
@@ -934,6 +935,9 @@ def _score_vertices(
         for key, v_step in (("euler", v_gt), ("second_order", 0.5 * (v_gt + v_later))):
             advected = projected_displacement(frame.camera, points, points + v_step * truth.frame_interval)
             gathered[key].append((advected - shown).norm(dim=-1)[ahead])
+        if known:
+            parts.update({f"training_times_{order}": _training_times_floor(truth, frame.camera, t, known, order, shown, ahead)
+                          for order in ("linear", "cubic")})
     record = {"coverage": float(found["hit"].float().mean()), "gt_speed": _mean(speed)}
     for key in ("deformation", "field"):
         err = found[key] - v_gt[found["hit"]] if key in found else None
@@ -941,17 +945,14 @@ def _score_vertices(
             gathered[key].append(err)
         record[f"{key}_mae"] = None if err is None else _mean(err.norm(dim=-1))
     seen = seen_gaussians(model, state, frame.camera)[found["gaussians"]]
-    known = [x for x in train_times or () if _has_sample(truth, x)]
-    if known and _has_sample(truth, t + truth.frame_interval):
-        parts = {f"training_times_{order}": _training_times_floor(truth, frame.camera, points, t, known, order)
-                 for order in ("linear", "cubic")}
+    if known and has_next:
         split = _training_times_split(model, truth, frame.camera, t, known, found["hit"].nonzero().squeeze(1)[seen],
                                       found["gaussians"][seen])
         parts.update(zip(("seen_flow", "seen_flow_at_training_times", "seen_flow_between_training_times"), split or (None,) * 3))
-        for key, part in parts.items():
-            if part is not None:
-                gathered[key].append(part)
-            record[f"{key}_px"] = None if part is None else _mean(part)
+    for key, part in parts.items():
+        if part is not None:
+            gathered[key].append(part)
+        record[f"{key}_px"] = None if part is None else _mean(part)
     return record, (found["hit"].nonzero().squeeze(1), found["gaussians"], seen)
 
 
