@@ -608,6 +608,7 @@ def evaluate_motion(
         "seen_flow_at_training_times": [], "seen_flow_between_training_times": [],
     }
     matches: dict[float, tuple[Tensor, Tensor, Tensor]] = {}  # sample time -> matched vertices, their Gaussians, seen
+    known = [x for x in train_times or () if _has_sample(truth, x)]  # the training times with a vertex sample
     for frame in frames:
         record: dict[str, Any] = {"view": frame.name, "time": frame.time}
         gt = truth.frame_flow(frame.name)
@@ -626,7 +627,7 @@ def evaluate_motion(
             record.update(next_time=gt.next_time, pixels=n)
             pixels, scored = pixels + n, scored + 1
         if frame.time not in matches and _has_sample(truth, frame.time):
-            scores, matches[frame.time] = _score_vertices(model, truth, frame, radius, h, gathered, train_times)
+            scores, matches[frame.time] = _score_vertices(model, truth, frame, radius, h, gathered, known)
             record.update(scores)
         per_frame.append(record)
 
@@ -906,11 +907,12 @@ def _training_times_split(
 
 def _score_vertices(
     model: DynamicGaussians, truth: MotionGroundTruth, frame: Frame, radius: float, h: float, gathered: dict[str, list[Tensor]],
-    train_times: Sequence[float] | None = None,
+    known: Sequence[float] = (),
 ) -> tuple[dict[str, float | None], tuple[Tensor, Tensor]]:
     """Match the vertex sample at the frame's time to the model's Gaussians and add its speeds, distances, velocity
     errors, true velocities and unit rays from the frame's camera to the matched vertices to ``gathered``; the
-    frame's coverage, mean true speed and mean errors, and the match (matched vertex indices, their Gaussians)."""
+    frame's coverage, mean true speed and mean errors, and the match (matched vertex indices, their Gaussians).
+    ``known``: the training times that have a vertex sample, for the floor and split of what they determine."""
     t = frame.time
     k = truth.vertices.index_of(t, _TIME_TOL)
     points = torch.from_numpy(truth.vertices.positions[k]).to(model.device)
@@ -923,7 +925,6 @@ def _score_vertices(
     gathered["distance"].append(found["distance"])
     gathered["ray"].append(nn_functional.normalize(points[found["hit"]] - frame.camera.camera_center.to(points), dim=-1))
     gathered["v_gt"].append(v_gt[found["hit"]])
-    known = [x for x in train_times or () if _has_sample(truth, x)]
     has_next = _has_sample(truth, t + truth.frame_interval)
     parts: dict[str, Tensor | None] = {}  # the floor of the training times and the model's error split (px)
     if has_next:  # the true velocity's own flows over one interval
@@ -997,12 +998,12 @@ def _velocity_scores(
         zero_mae=zero, zero_mae_per_frame=_times(zero, frame_interval), zero_rel=1.0 if int(counted.sum()) else None,
         deformation_along_ray=d_ray[0], deformation_across_ray=d_ray[1], field_along_ray=f_ray[0],
         field_across_ray=f_ray[1], zero_along_ray=z_ray[0], zero_across_ray=z_ray[1],
-        truth_velocity_flow_px=_mean(cat("euler")) if gathered["euler"] else None,
-        truth_velocity_flow_second_order_px=_mean(cat("second_order")) if gathered["second_order"] else None,
-        training_times_linear_flow_px=_mean(cat("training_times_linear")) if gathered["training_times_linear"] else None,
-        training_times_cubic_flow_px=_mean(cat("training_times_cubic")) if gathered["training_times_cubic"] else None,
-        seen_flow_px=_mean(cat("seen_flow")) if gathered["seen_flow"] else None,
-        seen_flow_at_training_times_px=_mean(cat("seen_flow_at_training_times")) if gathered["seen_flow"] else None,
-        seen_flow_between_training_times_px=_mean(cat("seen_flow_between_training_times")) if gathered["seen_flow"] else None,
+        truth_velocity_flow_px=_mean(cat("euler")),
+        truth_velocity_flow_second_order_px=_mean(cat("second_order")),
+        training_times_linear_flow_px=_mean(cat("training_times_linear")),
+        training_times_cubic_flow_px=_mean(cat("training_times_cubic")),
+        seen_flow_px=_mean(cat("seen_flow")),
+        seen_flow_at_training_times_px=_mean(cat("seen_flow_at_training_times")),
+        seen_flow_between_training_times_px=_mean(cat("seen_flow_between_training_times")),
     )
 
