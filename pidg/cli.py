@@ -105,14 +105,15 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"), device=args.device,
-                          motion_gt=args.motion_gt, motion_radius=args.motion_radius)
+                          motion_gt=args.motion_gt, motion_radius=args.motion_radius,
+                          views_from=Path(args.views_from) if args.views_from else None)
     mean = result["mean"]
     print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
     for name, future in result.get("future", {}).items():
         print(f"future ({name} after t={future['t_last']:.3f}): "
               + " ".join(f"{k}={v:.4f}" for k, v in future["mean"].items() if v is not None))
     if "motion_gt" in result:
-        print(f"{result['motion_gt'].summary()} -> {Path(args.run) / f'eval_{args.split}' / 'motion_gt.json'}")
+        print(f"{result['motion_gt'].summary()} -> {Path(result['folder']) / 'motion_gt.json'}")
     return 0
 
 
@@ -161,7 +162,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_make_scene(args: argparse.Namespace) -> int:
     width, height = parse_resolution(args.resolution)
     options = SceneOptions(args.kind, frames=args.frames, width=width, height=height, samples=args.samples,
-                           static_camera=args.static_camera, texture=args.texture, seed=args.seed, denoise=not args.no_denoise,
+                           static_camera=args.static_camera, held_out_on_orbit=args.held_out_on_orbit, texture=args.texture, seed=args.seed, denoise=not args.no_denoise,
                            points=args.points, verify=args.verify)
     summary = make_scene(options, Path(args.out), overwrite=args.overwrite)
     t, images = summary["timings"], summary["images"]
@@ -301,6 +302,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--motion-radius", type=float, default=None, metavar="R",
                     help="--motion-gt: largest distance (world units) from a ground-truth vertex to its Gaussian "
                     "(default: 2%% of the diagonal of the ground-truth vertices' bounding box)")
+    ev.add_argument("--views-from", default=None, metavar="DIR",
+                    help="score the split of DIR, a twin of the run's dataset (the same training frames, checked), "
+                    "instead of the run's own: e.g. `pidg make-scene --held-out-on-orbit` of the same scene, whose "
+                    "held-out views are novel times only -> RUN/eval_SPLIT@DIRNAME")
     _add_device_option(ev)
     ev.set_defaults(func=_cmd_eval)
 
@@ -338,6 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
     scene.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (denoised)")
     scene.add_argument("--no-denoise", action="store_true", help="no OpenImageDenoise pass")
     scene.add_argument("--static-camera", action="store_true", help="a fixed camera instead of one orbiting the scene")
+    scene.add_argument("--held-out-on-orbit", action="store_true", help="val and test views where the training camera "
+                       "is at their time (novel times only) instead of 30 degrees of azimuth off the orbit (novel views "
+                       "too); the same simulation, training images and ground truth otherwise")
     scene.add_argument("--texture", choices=SCENE_TEXTURES, default="cells", help="surface pattern: cells (random-coloured "
                        "Voronoi cells, not periodic) or checker (the scenes of docs/motion.md's earlier tables, whose "
                        "period a tumbling object's surface moves by in a frame)")

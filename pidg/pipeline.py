@@ -14,7 +14,7 @@ from pidg.config_tools import apply_overrides, load_config
 from pidg.data import DataConfig, load_scene
 from pidg.data.motion_gt import MotionGroundTruth, read_motion_gt
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
-from pidg.data.scene import Frame, SceneData
+from pidg.data.scene import DatasetError, Frame, SceneData
 from pidg.device import Device, describe, rasterizer_for, resolve_device
 from pidg.evaluation.evaluate import evaluate_model
 from pidg.evaluation.future import evaluate_future
@@ -49,10 +49,14 @@ class LoadedRun:
     scene: SceneData
 
 
-def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test"), device: Device = "auto") -> LoadedRun:
+def load_run(
+    run_dir: Path, splits: tuple[str, ...] = ("train", "test"), device: Device = "auto", views_from: Path | None = None
+) -> LoadedRun:
     """The scene model of a finished (or interrupted) run with its config and dataset, on ``device`` (a run trained
     on either device loads on either); nothing for training is built (no optimizer, no flow cache, no
-    initialisation)."""
+    initialisation). ``views_from``: another dataset folder to take the scene from, a twin of the run's own (the same
+    training frames: names, times, cameras and pixels, checked; e.g. ``pidg make-scene --held-out-on-orbit`` of the
+    same scene), whose held-out views are then the ones scored."""
     run_dir = Path(run_dir)
     if not (run_dir / CONFIG_FILE).is_file():
         raise FileNotFoundError(f"{run_dir}: no {CONFIG_FILE} (is this a pidg run folder?)")
@@ -66,44 +70,91 @@ def load_run(run_dir: Path, splits: tuple[str, ...] = ("train", "test"), device:
     model.backend = backend
     logger.info("%s on %s, rasterizer %s", run_dir, describe(where), rasterizer)
     data = dataclasses.replace(config.data, splits=tuple(dict.fromkeys(("train",) + splits)), progress=False)
-    return LoadedRun(run_dir, config, model, int(state["step"]), load_scene(data).to(where))
+    if views_from is None:
+        return LoadedRun(run_dir, config, model, int(state["step"]), load_scene(data).to(where))
+    twin = load_scene(dataclasses.replace(data, path=Path(views_from)))
+    check_same_training_frames(load_scene(dataclasses.replace(data, splits=("train",))), twin)
+    return LoadedRun(run_dir, config, model, int(state["step"]), twin.to(where))
+
+
+#: Largest difference (of 255) between a twin's training pixels and the run's: two renders of one scene may round a
+#: few pixels differently (the cloth scene's did by 1), a different scene differs by far more
+TWIN_PIXEL_TOLERANCE = 2
+
+
+def _how_frames_differ(a: Frame, b: Frame) -> str | None:
+    """What makes frame ``b`` another frame than ``a``: its time, camera or pixels; None when it is the same."""
+    ca, cb = a.camera, b.camera
+    if a.time != b.time:
+        return "time"
+    if not torch.equal(ca.world_to_camera, cb.world_to_camera) or (ca.fx, ca.fy, ca.cx, ca.cy, ca.width, ca.height) != (
+            cb.fx, cb.fy, cb.cx, cb.cy, cb.width, cb.height):
+        return "camera"
+    if a.image_u8.shape != b.image_u8.shape or int((a.image_u8.int() - b.image_u8.int()).abs().max()) > TWIN_PIXEL_TOLERANCE:
+        return "pixels"
+    return None
+
+
+def check_same_training_frames(own: SceneData, twin: SceneData) -> None:
+    """DatasetError naming ``twin``'s folder unless its training frames are ``own``'s: the same names and times, cameras
+    (pose and intrinsics) and pixels (to ``TWIN_PIXEL_TOLERANCE``), so that a run trained on one is a run trained on the
+    other."""
+    if [f.name for f in own.train] != [f.name for f in twin.train]:
+        raise DatasetError(twin.root, f"its training frames are not the run's ({own.root}): {len(twin.train)} against "
+                           f"{len(own.train)}, or named otherwise; --views-from needs a twin of the run's dataset")
+    for a, b in zip(own.train, twin.train):
+        what = _how_frames_differ(a, b)
+        if what is not None:
+            raise DatasetError(twin.root, f"training frame {a.name!r} differs from the run's ({own.root}) in its {what}; "
+                               "--views-from needs a twin of the run's dataset (the same training frames)")
+
+
+def eval_folder_name(split: str, views_from: Path | None = None) -> str:
+    """RUN's folder for an evaluation on ``split``: eval_SPLIT, or eval_SPLIT@NAME on the twin dataset folder NAME."""
+    return f"eval_{split}" if views_from is None else f"eval_{split}@{Path(views_from).resolve().name}"
 
 
 def evaluate_run(
     run_dir: Path, split: str = "test", lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), device: Device = "auto",
-    motion_gt: bool = False, motion_radius: float | None = None,
+    motion_gt: bool = False, motion_radius: float | None = None, views_from: Path | None = None,
 ) -> dict:
     """Metrics of a saved run on a split, written to RUN/eval_SPLIT/metrics.json. A run trained for future
     prediction (``data.train_until``) is also scored by each predictor on the split's future frames, in
     RUN/eval_SPLIT_future/<predictor>/ (the result's ``future`` entry). With ``motion_gt``, the learned motion is
     scored against the dataset's ground-truth motion too (:func:`evaluate_motion_and_save`; the result's
-    ``motion_gt`` entry); a dataset without it fails, naming the missing file, before anything is evaluated."""
-    run = load_run(run_dir, (split,), device)
+    ``motion_gt`` entry); a dataset without it fails, naming the missing file, before anything is evaluated.
+    ``views_from``: the split of that twin dataset instead (:func:`load_run`), in RUN/eval_SPLIT@NAME (the result's
+    ``folder``)."""
+    run = load_run(run_dir, (split,), device, views_from)
     truth = read_motion_gt(run.scene.root) if motion_gt else None
     nets = usable_lpips_nets(lpips_nets)
-    result = evaluate_and_save(run.model, run.scene, run.run_dir, split, nets, run.step)
+    folder = eval_folder_name(split, views_from)
+    result = evaluate_and_save(run.model, run.scene, run.run_dir, split, nets, run.step, folder)
+    result["folder"] = str(run.run_dir / folder)
     if run.config.data.train_until is not None and split != "train":
         t_last = max(f.time for f in run.scene.train)
-        future = evaluate_future(run.model, run.scene.frames(split), t_last, run.run_dir / f"eval_{split}_future", nets)
+        future = evaluate_future(run.model, run.scene.frames(split), t_last, run.run_dir / f"{folder}_future", nets)
         result["future"] = {name: {"mean": r["mean"], "t_last": t_last} for name, r in future.items()}
     if truth is not None:
-        result["motion_gt"] = evaluate_motion_and_save(run.model, run.scene, run.run_dir, split, truth, motion_radius, run.config.flow)
+        result["motion_gt"] = evaluate_motion_and_save(run.model, run.scene, run.run_dir, split, truth, motion_radius, run.config.flow,
+                                                       folder=folder)
     return result
 
 
 def evaluate_motion_and_save(
     model: DynamicGaussians, scene: SceneData, run_dir: Path, split: str = "test", truth: MotionGroundTruth | None = None,
-    radius: float | None = None, flow: FlowConfig | None = None, flow_cache: FlowCache | None = None,
+    radius: float | None = None, flow: FlowConfig | None = None, flow_cache: FlowCache | None = None, folder: str | None = None,
 ) -> MotionEvaluation:
     """The model's motion on a split against the scene's ground-truth motion (``truth``, else read from the
     dataset folder; :mod:`pidg.evaluation.motion`), written to RUN/eval_SPLIT/motion_gt.json, its per-frame errors
     drawn over time in motion_gt_per_frame.svg and its 3D tracking in motion_gt_tracking.svg. With ``flow`` (the
     run's flow settings) the training pairs' flow target is scored too, from ``flow_cache`` or else the scene's
     optical-flow cache (computed where missing). Each scored view's flows beside the truth go to
-    RUN/eval_SPLIT/motion_flow/VIEW.png (:func:`pidg.evaluation.visualize.truth_flow_comparison`)."""
+    RUN/eval_SPLIT/motion_flow/VIEW.png (:func:`pidg.evaluation.visualize.truth_flow_comparison`). ``folder``: RUN's
+    subfolder instead of eval_SPLIT."""
     truth = truth if truth is not None else read_motion_gt(scene.root)
     integration = flow.velocity_integration if flow is not None else "euler"
-    out_dir = Path(run_dir) / f"eval_{split}"
+    out_dir = Path(run_dir) / (folder or f"eval_{split}")
 
     def save_picture(flows: FrameFlows) -> None:
         image, scale = truth_flow_comparison(flows)
@@ -124,11 +175,12 @@ def evaluate_motion_and_save(
 
 def evaluate_and_save(
     model: DynamicGaussians, scene: SceneData, run_dir: Path, split: str = "test",
-    lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), iterations: int | None = None,
+    lpips_nets: tuple[NetName, ...] = ("alex", "vgg"), iterations: int | None = None, folder: str | None = None,
 ) -> dict:
-    """Metrics of a model on a split of its scene, with renders, ground truth and depth, in RUN/eval_SPLIT/."""
+    """Metrics of a model on a split of its scene, with renders, ground truth and depth, in RUN/eval_SPLIT/ (or
+    RUN/``folder``)."""
     info = {} if iterations is None else {"iterations": iterations}
-    return evaluate_model(model, scene.frames(split), Path(run_dir) / f"eval_{split}", usable_lpips_nets(lpips_nets), info)
+    return evaluate_model(model, scene.frames(split), Path(run_dir) / (folder or f"eval_{split}"), usable_lpips_nets(lpips_nets), info)
 
 
 def usable_lpips_nets(lpips_nets: tuple[NetName, ...]) -> tuple[NetName, ...]:

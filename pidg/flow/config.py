@@ -15,6 +15,7 @@ FlowTargetKind = Literal["motion", "total"]
 EstimatorName = Literal["dis", "deepflow", "tvl1", "raft"]
 DisPreset = Literal["ultrafast", "fast", "medium"]
 VelocityIntegration = Literal["euler", "midpoint"]
+FlowDirections = Literal["forward", "both"]
 
 
 @dataclass
@@ -49,6 +50,11 @@ class FlowConfig:
     first-order flow is 0.84 px from the true motion, its second-order one 0.04 px: docs/motion.md), so a first-order
     flow loss teaches v each interval's chord rather than the particles' velocity. Evaluation (``pidg eval
     --motion-gt``) scores the velocity flow with the run's own rule."""
+    directions: FlowDirections = "forward"
+    """Which pair a step's frame k is matched with. forward (the paper): the flow to frame k+1. both (an extension):
+    half the steps, drawn at random, the pair back to frame k-1 instead (its cached backward flow, on frame k's
+    pixels; the interval runs backwards, dt < 0), so each interval is supervised from both of its frames, on the
+    surfaces each of them sees; the first and the last frame use the pair they have. Same cost per step."""
     start: Annotated[int, NON_NEGATIVE] = 0
     """First training step that uses LPFM (then every step)."""
     target: FlowTargetKind = "motion"

@@ -91,8 +91,17 @@ class FlowPair:
 
     @property
     def dt(self) -> float:
-        """Time step t+1 - t in the scene's normalised time (what velocities are integrated over)."""
+        """Time step t+1 - t in the scene's normalised time (what velocities are integrated over; < 0 for a
+        :meth:`reversed` pair)."""
         return self.frame1.time - self.frame0.time
+
+    def reversed(self) -> "FlowPair":
+        """The same pair run backwards in time: frame t+1 first, its backward flow as the pair's forward one (on
+        frame t+1's pixels), so every consumer of a pair reads it unchanged and integrates over dt < 0."""
+        return FlowPair(
+            self.index, self.frame1, self.frame0, self.stored_backward, self.stored_forward, self.valid_backward,
+            self.valid_forward,
+        )
 
 
 class FlowCache:
@@ -107,8 +116,8 @@ class FlowCache:
         self.forward, self.backward = forward, backward
         self.valid_forward, self.valid_backward = valid_forward, valid_backward
         self.computed, self.reused = computed, reused
-        self._pair_of_id = {id(f): k for k, f in enumerate(frames[:-1])}
-        self._pair_of_name = {f.name: k for k, f in enumerate(frames[:-1])}
+        self._position_of_id = {id(f): k for k, f in enumerate(frames)}
+        self._position_of_name = {f.name: k for k, f in enumerate(frames)}
 
     def __len__(self) -> int:
         return max(0, len(self.frames) - 1)
@@ -121,10 +130,20 @@ class FlowCache:
             self.valid_forward[k], self.valid_backward[k],
         )
 
+    def _position(self, frame: Frame) -> int | None:
+        """``frame``'s place in :attr:`frames` (matched by identity, else by name); None if it is not there."""
+        return self._position_of_id.get(id(frame), self._position_of_name.get(frame.name))
+
     def pair_starting_at(self, frame: Frame) -> FlowPair | None:
-        """The pair whose first frame is ``frame`` (matched by identity, else by name); None for the last frame."""
-        k = self._pair_of_id.get(id(frame), self._pair_of_name.get(frame.name))
-        return None if k is None else self.pair(k)
+        """The pair whose first frame is ``frame``; None for the last frame."""
+        k = self._position(frame)
+        return None if k is None or k >= len(self) else self.pair(k)
+
+    def pair_back_from(self, frame: Frame) -> FlowPair | None:
+        """The pair that ends at ``frame``, reversed (:meth:`FlowPair.reversed`: from ``frame`` back to the training
+        frame before it); None for the first frame."""
+        k = self._position(frame)
+        return None if k is None or k == 0 else self.pair(k - 1).reversed()
 
     def to(self, device: torch.device | str, frames: list[Frame] | None = None) -> "FlowCache":
         """The cache with its flows on ``device`` and, given ``frames`` (the same scene's frames moved there, as

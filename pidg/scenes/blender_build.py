@@ -345,9 +345,11 @@ _BUILDERS = {"rigid": _build_rigid, "cloth": _build_cloth, "soft": _build_soft, 
 KINDS = tuple(_BUILDERS)
 
 
-def build_scene(kind: str, n_images: int, seed: int, fps: int, static_camera: bool, texture: str = "cells") -> BuiltScene:
+def build_scene(
+    kind: str, n_images: int, seed: int, fps: int, static_camera: bool, texture: str = "cells", held_out_on_orbit: bool = False
+) -> BuiltScene:
     """A fresh Blender scene of ``kind`` for ``n_images`` images (one per frame at ``fps``), simulated through, its
-    surfaces of ``texture`` (:data:`TEXTURES`)."""
+    surfaces of ``texture`` (:data:`TEXTURES`); ``held_out_on_orbit``: see :class:`pidg.scenes.capture.Orbit`."""
     check_texture(texture)  # before anything is built
     import bpy
 
@@ -367,7 +369,8 @@ def build_scene(kind: str, n_images: int, seed: int, fps: int, static_camera: bo
     scene.camera = camera
     static = [o.name for o in scene.objects if o.type == "MESH" and o.name not in {n for n, _ in dynamic}]
     target, radius = ((0.0, 0.0, 0.75), 6.0) if kind == "rigid" else ((0.0, 0.0, 0.55), 5.2)  # rigid: objects drop from 2.3
-    orbit = Orbit(target=target, radius=radius, azimuth0_deg=float(rng.uniform(0, 360)), static=static_camera)
+    orbit = Orbit(target=target, radius=radius, azimuth0_deg=float(rng.uniform(0, 360)), static=static_camera,
+                  held_out_on_orbit=held_out_on_orbit)
     bake(scene)
     return BuiltScene(dynamic, static, camera.name, orbit, sim_end, fps)
 

@@ -9,6 +9,8 @@ Cameras, like a D-NeRF capture: one moving camera, one view per time. Training v
 sequence (azimuth linear in t, elevation waving gently); held-out views sit off the orbit (test +30 degrees of
 azimuth, val -30, elevation 6 degrees higher and waving in opposite phase), so they are novel views as well as novel times. ``static`` keeps
 every training view at the start of the orbit (a tripod); held-out views keep their offsets from it.
+``held_out_on_orbit`` puts the held-out views where the training camera is at their time instead (novel times only, as
+a video's own frames are), so that a run's held-out error can be split into what the time and what the view cost.
 Matrices are OpenGL/Blender camera-to-world (x right, y up, looking down -z), world z up, world units.
 """
 from __future__ import annotations
@@ -65,14 +67,16 @@ class Orbit:
     azimuth0_deg: float = 0.0
     turns: float = 1.0
     static: bool = False
+    held_out_on_orbit: bool = False  # held-out views where the training camera is at their time (module docstring)
 
     def camera_to_world(self, shot: Shot) -> np.ndarray:
         """OpenGL camera-to-world [4, 4] float64 of ``shot``."""
         progress = 0.0 if self.static else shot.time
         wave = 0.0 if self.static else math.sin(4.0 * math.pi * shot.time)
-        azimuth = self.azimuth0_deg + 360.0 * self.turns * progress + HELD_OUT_AZIMUTH_DEG.get(shot.split, 0.0)
-        sign = 1.0 if shot.split == "train" else -1.0
-        elevation = self.elevation_deg + sign * self.elevation_wave_deg * wave + (0.0 if shot.split == "train" else 6.0)
+        off_orbit = shot.split != "train" and not self.held_out_on_orbit
+        azimuth = self.azimuth0_deg + 360.0 * self.turns * progress + (HELD_OUT_AZIMUTH_DEG[shot.split] if off_orbit else 0.0)
+        sign = -1.0 if off_orbit else 1.0
+        elevation = self.elevation_deg + sign * self.elevation_wave_deg * wave + (6.0 if off_orbit else 0.0)
         return look_at_gl(self.target, self.radius, math.radians(azimuth), math.radians(elevation))
 
 

@@ -63,6 +63,7 @@ class SceneOptions:
     height: int = 200
     samples: int = 16  # Cycles samples per pixel
     static_camera: bool = False
+    held_out_on_orbit: bool = False  # held-out views on the training camera's path (novel times only; capture.Orbit)
     texture: str = "cells"  # surface pattern: bb.TEXTURES (cells; checker: the earlier scenes)
     seed: int = 0
     fps: int = 24
@@ -261,7 +262,8 @@ def make_scene(options: SceneOptions, out: Path | str, overwrite: bool = False) 
     timings: dict[str, float] = {}
     start = time.perf_counter()
     n = options.frames
-    built = bb.build_scene(options.kind, n, options.seed, options.fps, options.static_camera, options.texture)
+    built = bb.build_scene(options.kind, n, options.seed, options.fps, options.static_camera, options.texture,
+                           options.held_out_on_orbit)
     geometry, subframe = collect_geometry(built, n)
     timings["simulate_s"] = time.perf_counter() - start
 

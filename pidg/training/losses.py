@@ -340,6 +340,12 @@ class _CachedTarget:
     target: FlowTarget | None
 
 
+def _target_key(pair: FlowPair) -> str:
+    """Where a pair's target is cached (and saved): a forward pair by its first frame's name, a reversed one
+    (``FlowConfig.directions`` both) by that name marked with the frame it runs back to."""
+    return pair.frame0.name if pair.dt >= 0 else f"{pair.frame0.name}<{pair.frame1.name}"
+
+
 #: dtype of the depths the flow term keeps from training renders (and saves in checkpoints: 150 frames at 400x400
 #: are 48 MB in float16)
 KEPT_DEPTH_DTYPE = torch.float16
@@ -357,7 +363,8 @@ class FlowMatchingLoss(LossTerm):
     only until frame t+1 has been trained (the first epoch). The target is known before the render, so only the
     Gaussians whose footprint reaches one of its supervised pixels get flow channels
     (:func:`pidg.flow.supervised_flow_channels`: the same loss and gradients for the cost of those Gaussians).
-    Steps whose frame starts no flow pair (the last frame), or whose target supervises no pixel, have no flow term."""
+    Steps whose frame starts no flow pair (the last frame), or whose target supervises no pixel, have no flow term.
+    With ``FlowConfig.directions`` both, "t+1" is the frame the step's pair runs to, ahead or back in time."""
 
     name = "lpfm"
     phase = "flow"
@@ -365,8 +372,9 @@ class FlowMatchingLoss(LossTerm):
     def __init__(self, config: FlowConfig, cache: FlowCache, seed: int = 0) -> None:
         self.config = config
         self.cache = cache
-        self.generator = torch.Generator().manual_seed(seed)  # the tiles drawn per step (FlowConfig.tile_fraction)
-        self._targets: dict[str, _CachedTarget] = {}  # pair's first frame name -> flow_gt and what it came from
+        # the tiles drawn per step (FlowConfig.tile_fraction) and, with both directions, the pair's direction
+        self.generator = torch.Generator().manual_seed(seed)
+        self._targets: dict[str, _CachedTarget] = {}  # _target_key(pair) -> flow_gt and what it came from
         self._pending: tuple[FlowPair, FlowTarget] | None = None  # this step's pair and target
         self._depths: dict[str, tuple[int, Tensor]] = {}  # frame name -> (step, its depth in that step's render)
 
@@ -375,7 +383,7 @@ class FlowMatchingLoss(LossTerm):
 
     def prepare(self, inputs: StepInputs) -> None:
         self._pending = None
-        pair = self.cache.pair_starting_at(inputs.frame)
+        pair = self.pair_for(inputs.frame)
         if pair is None:
             return
         target = self.target(inputs.model, pair, inputs.step, inputs.deforming)
@@ -383,6 +391,16 @@ class FlowMatchingLoss(LossTerm):
         target = dataclasses.replace(target, valid=sample_tiles(target.valid, self.config.tile_fraction, self.generator))
         if bool(target.valid.any()):
             self._pending = (pair, target)
+
+    def pair_for(self, frame: Frame) -> FlowPair | None:
+        """The pair this step's frame is matched with (``FlowConfig.directions``); None if it has none."""
+        ahead = self.cache.pair_starting_at(frame)
+        if self.config.directions == "forward":
+            return ahead
+        back = self.cache.pair_back_from(frame)
+        if ahead is None or back is None:
+            return ahead or back
+        return back if bool(torch.rand((), generator=self.generator) < 0.5) else ahead
 
     def render_features(self, inputs: StepInputs) -> Tensor | None:
         if self._pending is None:
@@ -421,7 +439,7 @@ class FlowMatchingLoss(LossTerm):
         """The pair's flow_gt, rebuilt when its depth is ``target_refresh_steps`` old. Frame t+1's depth: the
         dataset's; else the one kept from frame t+1's latest training render when younger than that; else a no-grad
         render of the model at t+1 (canonical while ``deforming`` is False). The total-flow target is built once."""
-        cached = self._targets.get(pair.frame0.name)
+        cached = self._targets.get(_target_key(pair))
         fixed = self.config.target == "total"  # the optical flow itself: it never changes
         refresh = self.config.target_refresh_steps
         if cached is not None and (fixed or step - cached.step < refresh):
@@ -440,7 +458,7 @@ class FlowMatchingLoss(LossTerm):
                     state_t1 = model.at(pair.frame1.time) if deforming else model.canonical()
             built_at = step
             target, depth = model_flow_target(model, pair, state_t1, self.config)
-        self._targets[pair.frame0.name] = _CachedTarget(built_at, depth, target)
+        self._targets[_target_key(pair)] = _CachedTarget(built_at, depth, target)
         return target
 
     def state_dict(self) -> dict[str, Any]:

@@ -682,6 +682,42 @@ def test_cli_eval_motion_gt_passes_the_runs_training_times(tiny_run, capsys):
     assert "interpolated linearly 0.000 px" in capsys.readouterr().out
 
 
+@pytest.mark.filterwarnings("ignore:ms_ssim reported as None")
+def test_cli_eval_views_from_a_twin_scores_its_views_and_refuses_other_data(tiny_run, capsys):
+    """--views-from DIR: the split of DIR, a twin of the run's dataset (here a copy with one test view dropped),
+    scored into RUN/eval_SPLIT@DIR's name; a folder whose training frames are not the run's is one line naming it."""
+    from pidg.cli import main
+
+    run, twin, other = tiny_run / "run", tiny_run / "twin", tiny_run / "other"
+    for folder in (twin, other):
+        shutil.copytree(tiny_run / "data", folder, dirs_exist_ok=True)
+    image = next((twin / "train").glob("*.png"))  # two renders of one scene may round a pixel differently
+    pixels = np.array(Image.open(image))
+    pixels[..., :3] = np.where(pixels[..., :3] < 255, pixels[..., :3] + 1, 254)
+    Image.fromarray(pixels).save(image)
+    transforms = json.loads((twin / "transforms_test.json").read_text())
+    transforms["frames"] = transforms["frames"][1:]
+    (twin / "transforms_test.json").write_text(json.dumps(transforms))
+    assert main(["eval", str(run), "--motion-gt", "--lpips", "none", "--views-from", str(twin)]) == 0
+    data = json.loads((run / "eval_test@twin" / "motion_gt.json").read_text())
+    assert data["flow"]["frames"] == 1 and len(data["per_frame"]) == 1
+    assert data["dataset"] == str(twin)
+    assert str(run / "eval_test@twin" / "motion_gt.json") in capsys.readouterr().out
+    metrics = json.loads((run / "eval_test@twin" / "metrics.json").read_text())
+    assert metrics["views"] == 1 and [v["view"] for v in metrics["per_view"]] == [data["per_frame"][0]["view"]]
+
+    image = next((other / "train").glob("*.png"))
+    pixels = np.array(Image.open(image))
+    h, w = pixels.shape[0] // 2, pixels.shape[1] // 2
+    pixels[h, w, :3] = (pixels[h, w, :3].astype(int) + 128) % 256  # one pixel of one training image, made opaque
+    pixels[h, w, 3:] = 255
+    Image.fromarray(pixels).save(image)
+    assert main(["eval", str(run), "--lpips", "none", "--views-from", str(other)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(other) in err[0] and "in its pixels" in err[0] and "twin" in err[0]
+    assert not (run / "eval_test@other").exists()
+
+
 def _flat_index(data: dict, value: float) -> int:
     """Where ``value`` sits in the chart's points (lines in the order motion, velocity, zero, flow target, velocity flow
     from the target; points in time order)."""

@@ -76,10 +76,11 @@ def test_on_a_rotation_midpoint_is_second_order_and_euler_first():
     """Halving the interval divides the endpoint's error on a circle by ~4 for Euler (local error O(dt^2)) and by
     ~8 for the midpoint rule (O(dt^3)); the exact endpoint is the rotation by OMEGA x the interval."""
     model = model_with(Rotation())
-    for rule, ratio in (("euler", 4.0), ("midpoint", 8.0)):
-        coarse, fine = endpoint_error(model, 0.04, rule), endpoint_error(model, 0.02, rule)
-        assert coarse / fine == pytest.approx(ratio, rel=0.05), rule
-    assert endpoint_error(model, 0.04, "midpoint") < 0.1 * endpoint_error(model, 0.04, "euler")
+    for sign in (1.0, -1.0):  # backwards in time too: a reversed flow pair (--flow.directions both) has dt < 0
+        for rule, ratio in (("euler", 4.0), ("midpoint", 8.0)):
+            coarse, fine = endpoint_error(model, sign * 0.04, rule), endpoint_error(model, sign * 0.02, rule)
+            assert coarse / fine == pytest.approx(ratio, rel=0.05), (rule, sign)
+        assert endpoint_error(model, sign * 0.04, "midpoint") < 0.1 * endpoint_error(model, sign * 0.04, "euler")
 
 
 def test_midpoint_is_exact_for_a_velocity_linear_in_time():
@@ -92,3 +93,5 @@ def test_midpoint_is_exact_for_a_velocity_linear_in_time():
     torch.testing.assert_close(moved, torch.full_like(moved, exact))
     euler = interval_velocity(model, t, dt, x)[:, 0] * model.time_axis.to_physics(dt)
     assert float((euler - exact).abs().min()) > 0.1  # first order misses the acceleration's share
+    back = interval_velocity(model, t + dt, -dt, x, integration="midpoint")[:, 0] * model.time_axis.to_physics(-dt)
+    torch.testing.assert_close(back, torch.full_like(back, -exact))  # the same interval run backwards

@@ -142,6 +142,15 @@ def test_cache_layout_and_contents(scene: SceneData, tmp_path: Path):
     assert pair.dt == pytest.approx(scene.train[2].time - scene.train[1].time)
     assert cache.pair_starting_at(scene.train[2]).index == 2
     assert cache.pair_starting_at(scene.train[3]) is None
+    # the pair back from a frame (--flow.directions both): the one ending there, reversed
+    back = cache.pair_back_from(scene.train[2])
+    assert back.frame0 is scene.train[2] and back.frame1 is scene.train[1] and back.dt == pytest.approx(-pair.dt)
+    assert torch.equal(back.forward, pair.backward) and torch.equal(back.backward, pair.forward)
+    assert torch.equal(back.valid_forward, pair.valid_backward) and torch.equal(back.valid_backward, pair.valid_forward)
+    again = back.reversed()
+    assert again.frame0 is pair.frame0 and again.frame1 is pair.frame1 and torch.equal(again.forward, pair.forward)
+    assert cache.pair_back_from(scene.train[0]) is None
+    assert cache.pair_back_from(replace(scene.train[3])).frame1 is scene.train[2]  # by name, as for pair_starting_at
     # the ring moves and the camera orbits: real flow, mostly consistent
     assert pair.forward.norm(dim=-1).mean() > 0.5
     assert pair.valid_forward.float().mean() > 0.5

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("bpy")
 
@@ -100,6 +101,27 @@ def test_static_camera_keeps_every_training_view(tmp_path):
     assert test[0]["transform_matrix"] != train[0]["transform_matrix"]  # held-out views stay novel views
     assert summary["verify"]["counts"]["static_nonzero_flow_px"] == 0
     assert summary["verify"]["blender"]["ray_cast"]["hit_mismatch"] == 0
+
+
+def test_held_out_on_orbit_changes_the_held_out_views_only(tmp_path):
+    """--held-out-on-orbit makes a twin: the same simulation, ground truth and training images (a run trained on one
+    is a run trained on the other), its val and test views on the training camera's path at their times."""
+    for name, on_orbit in (("off", False), ("on", True)):
+        make_scene(SceneOptions("kinematic", frames=8, width=32, height=32, samples=1, denoise=False, points=200,
+                                held_out_on_orbit=on_orbit), tmp_path / name)
+    off, on = tmp_path / "off", tmp_path / "on"
+    a, b = read_motion_gt(off), read_motion_gt(on)
+    assert np.array_equal(a.vertices.positions, b.vertices.positions) and np.array_equal(a.vertices.velocities, b.vertices.velocities)
+    assert json.loads((off / "transforms_train.json").read_text()) == json.loads((on / "transforms_train.json").read_text())
+    scenes = [load_scene(DataConfig(path=p, splits=("train", "test"), progress=False)) for p in (off, on)]
+    assert all(torch.equal(f.image_u8, g.image_u8) for f, g in zip(scenes[0].train, scenes[1].train))
+    held_off, held_on = scenes[0].test[0], scenes[1].test[0]
+    assert held_off.time == held_on.time and not torch.equal(held_off.camera.world_to_camera, held_on.camera.world_to_camera)
+    # on the path: its eye between the training eyes of the frames before and after it (the orbit turns ~51 deg a frame)
+    before, after = (min(scenes[1].train, key=lambda f, s=s: abs(f.time - held_on.time - s / 7)) for s in (-1, 1))
+    eye = lambda f: torch.linalg.inv(f.camera.world_to_camera)[:3, 3]  # noqa: E731
+    gap = (eye(before) - eye(after)).norm()
+    assert (eye(held_on) - eye(before)).norm() < gap and (eye(held_on) - eye(after)).norm() < gap
 
 
 def test_the_textures_change_the_surfaces_only(tmp_path):

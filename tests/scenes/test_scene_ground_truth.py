@@ -11,7 +11,7 @@ import torch
 
 from pidg.cli import main
 from pidg.scenes import SceneOptions
-from pidg.scenes.capture import Orbit, look_at_gl, pidg_camera, shot_list
+from pidg.scenes.capture import HELD_OUT_AZIMUTH_DEG, Orbit, Shot, look_at_gl, pidg_camera, shot_list
 from pidg.scenes.ground_truth import (
     Triangles,
     cast_rays,
@@ -163,6 +163,24 @@ def test_orbit_cameras_look_at_the_target(split):
     static = Orbit(target=(0, 0, 0), radius=5.0, static=True)
     train = [s for s in shot_list(20) if s.split == "train"]
     np.testing.assert_allclose(static.camera_to_world(train[0]), static.camera_to_world(train[-1]))
+
+
+def test_held_out_views_on_the_orbit_are_where_the_training_camera_is_at_their_time():
+    """--held-out-on-orbit: a held-out view's camera is the training camera's at its time (novel times only); by
+    default it is 30 degrees of azimuth round the orbit from there (novel views too)."""
+    on = Orbit(target=(0.1, -0.2, 0.5), radius=5.0, azimuth0_deg=40.0, held_out_on_orbit=True)
+    off = Orbit(target=(0.1, -0.2, 0.5), radius=5.0, azimuth0_deg=40.0)
+    shots = shot_list(20)
+    for shot in shots:
+        as_training = Shot(shot.index, shot.time, "train")
+        np.testing.assert_array_equal(on.camera_to_world(shot), off.camera_to_world(as_training))
+        if shot.split == "train":
+            np.testing.assert_array_equal(on.camera_to_world(shot), off.camera_to_world(shot))
+            continue
+        # the eyes' bearings round the target, seen from above: the default's is the azimuth offset further on
+        a, b = (o.camera_to_world(shot)[:2, 3] - np.array(o.target[:2]) for o in (off, on))
+        turn = math.degrees(math.atan2(b[0] * a[1] - b[1] * a[0], b @ a))
+        assert turn == pytest.approx(HELD_OUT_AZIMUTH_DEG[shot.split], abs=1e-9)
 
 
 def test_bilinear_is_exact_on_linear_fields():

@@ -156,14 +156,16 @@ def test_full_pidg_step_adds_cmr_and_lpfm_and_trains_the_material_field(scene, t
     assert errors["flow_supervised_pixels"] > 0 and errors["velocity_flow_epe"] >= 0.0
 
 
-@pytest.mark.parametrize("refresh, tiles", [(300, 1.0), (6, 1.0), (300, 0.5)])
-def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh, tiles):
+@pytest.mark.parametrize("refresh, tiles, directions", [(300, 1.0, "forward"), (6, 1.0, "forward"), (300, 0.5, "forward"),
+                                                       (6, 0.5, "both")])
+def test_full_pidg_resume_matches_an_uninterrupted_run(scene, tmp_path, refresh, tiles, directions):
     # 8 training frames: the second epoch reuses flow targets built in the first, across the interruption; with a
     # 6-step refresh it rebuilds them from depths kept from training renders, some of them before the interruption;
-    # with half the tiles per step the resumed run draws the same tiles (the term's generator is checkpointed)
+    # with half the tiles per step the resumed run draws the same tiles (the term's generator is checkpointed), and
+    # with both directions the same pairs, the reversed ones' targets saved apart from the forward ones'
     def config(out_dir):
         cfg = dataclasses.replace(physics_flow_config(out_dir, iterations=14), device=EXACT_RESUME_DEVICE)
-        cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=refresh, tile_fraction=tiles)
+        cfg.flow = dataclasses.replace(cfg.flow, target_refresh_steps=refresh, tile_fraction=tiles, directions=directions)
         return cfg
 
     full = Trainer(config(tmp_path / "full"), scene)
@@ -195,6 +197,52 @@ def test_the_midpoint_velocity_flow_reads_the_field_half_an_interval_on(scene, t
     halfway = {round(0.5 * (a.time + b.time), 6) for a, b in zip(frames, frames[1:])}
     assert seen["euler"] <= {round(f.time, 6) for f in frames}
     assert seen["midpoint"] & halfway and seen["midpoint"] - halfway <= {round(f.time, 6) for f in frames}
+
+
+def test_both_directions_match_a_frame_with_the_pair_back_half_the_time(scene, tmp_path):
+    """--flow.directions both: frame k's step draws the pair to frame k+1 or, half the time, the one back to frame k-1
+    (the backward flow on frame k's pixels, dt < 0) with a target of its own; the ends use the pair they have;
+    forward draws nothing (runs without the option keep their tiles, bit for bit)."""
+    cfg = physics_flow_config(tmp_path, iterations=1)
+    cfg.flow = dataclasses.replace(cfg.flow, directions="both")
+    trainer = Trainer(cfg, scene)
+    term, cache, model = next(t for t in trainer.loss_terms if t.name == "lpfm"), trainer.flow_cache, trainer.model
+    frames = cache.frames
+    assert all(term.pair_for(frames[0]).frame1 is frames[1] for _ in range(20))
+    assert all(term.pair_for(frames[-1]).frame1 is frames[-2] for _ in range(20))
+    drawn = [term.pair_for(frames[3]) for _ in range(400)]
+    back = [p for p in drawn if p.dt < 0]
+    assert 150 < len(back) < 250  # binomial(400, 1/2): 200 +- 10
+    assert all(p.frame1 is frames[2] and torch.equal(p.forward, cache.pair(2).backward) for p in back)
+    ahead = next(p for p in drawn if p.dt > 0)
+    target_back, target_ahead = term.target(model, back[0], step=0), term.target(model, ahead, step=0)
+    expected = model_flow_target(model, back[0], None, cfg.flow)[0]  # frame k-1's depth, cameras k then k-1
+    assert torch.equal(target_back.flow, expected.flow) and torch.equal(target_back.valid, expected.valid)
+    assert target_ahead is not target_back and len(term._targets) == 2
+    # the reversed target runs the pair's interval backwards: on a slow orbit with the true depth maps (the camera's
+    # motion taken out right), where both see the surface it is about minus the forward target, read at the pixel the
+    # optical flow reaches (measured: 0.05-0.21 px apart, the motion 0.5-1.0 px; the forward one itself 0.9-2.0 apart)
+    full = make_procedural_scene(ProceduralSceneConfig(n_train=30, n_test=1, width=64, height=48, n_gaussians=1500, orbit_turns=0.2))
+    trainer = Trainer(cfg, dataclasses.replace(full, splits={"train": full.train[:6], "test": full.test}))
+    term, cache = next(t for t in trainer.loss_terms if t.name == "lpfm"), trainer.flow_cache
+    for k in range(len(cache)):
+        forward_pair = cache.pair(k)
+        forward_target, target_back = (term.target(trainer.model, p, step=0) for p in (forward_pair, forward_pair.reversed()))
+        ys, xs = forward_target.valid.nonzero(as_tuple=True)
+        reached = (torch.stack([xs, ys], dim=-1) + forward_pair.forward[ys, xs]).round().long()
+        inside = (reached[:, 0] >= 0) & (reached[:, 0] < 64) & (reached[:, 1] >= 0) & (reached[:, 1] < 48)
+        seen = torch.zeros_like(inside)
+        seen[inside] = target_back.valid[reached[inside, 1], reached[inside, 0]]
+        assert int(seen.sum()) > 500
+        flow, back_flow = forward_target.flow[ys[seen], xs[seen]], target_back.flow[reached[seen, 1], reached[seen, 0]]
+        motion = float(flow.norm(dim=-1).median())
+        assert float((back_flow + flow).norm(dim=-1).median()) < 0.4 * motion < 0.3 * float((back_flow - flow).norm(dim=-1).median())
+
+    forward_only = Trainer(physics_flow_config(tmp_path / "forward", iterations=1), scene)
+    term = next(t for t in forward_only.loss_terms if t.name == "lpfm")
+    state = term.generator.get_state()
+    assert all(term.pair_for(forward_only.flow_cache.frames[3]).dt > 0 for _ in range(20))
+    assert torch.equal(term.generator.get_state(), state)
 
 
 def test_the_depth_change_term_trains_v_along_the_rays_where_the_data_has_depth(scene, rgbd_scene, tmp_path):
