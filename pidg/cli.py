@@ -162,8 +162,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_make_scene(args: argparse.Namespace) -> int:
     width, height = parse_resolution(args.resolution)
     options = SceneOptions(args.kind, frames=args.frames, width=width, height=height, samples=args.samples,
-                           static_camera=args.static_camera, held_out_on_orbit=args.held_out_on_orbit, texture=args.texture, seed=args.seed, denoise=not args.no_denoise,
-                           points=args.points, verify=args.verify)
+                           static_camera=args.static_camera, held_out_on_orbit=args.held_out_on_orbit, texture=args.texture,
+                           seed=args.seed, denoise=not args.no_denoise, points=args.points, verify=args.verify)
     summary = make_scene(options, Path(args.out), overwrite=args.overwrite)
     t, images = summary["timings"], summary["images"]
     print(f"{args.kind} scene -> {args.out}: {images['train']} train / {images['val']} val / {images['test']} test images of "

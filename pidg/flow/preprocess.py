@@ -69,7 +69,8 @@ _UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 class FlowPair:
     """Optical flow between training frames k (time t) and k + 1 (time t+1): ``forward`` and ``backward`` float32
     [H, W, 2] (px), read from the stored flows (the cache's float16) on first use, since a training step whose flow
-    target is cached needs the pair's frames only (two conversions were 1.2 ms of such a step); bool masks."""
+    target is cached needs the pair's frames only (two conversions were 1.2 ms of such a step); bool masks. A
+    :meth:`reversed` pair runs from frame k + 1 back to frame k."""
 
     index: int
     frame0: Frame
