@@ -106,7 +106,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
 def _cmd_eval(args: argparse.Namespace) -> int:
     result = evaluate_run(Path(args.run), split=args.split, lpips_nets=tuple(n for n in args.lpips if n != "none"), device=args.device,
                           motion_gt=args.motion_gt, motion_radius=args.motion_radius,
-                          views_from=Path(args.views_from) if args.views_from else None)
+                          views_from=args.views_from)
     mean = result["mean"]
     print(" ".join(f"{k}={v:.4f}" for k, v in mean.items() if v is not None) + f" fps={result['render_fps']:.1f}")
     for name, future in result.get("future", {}).items():
@@ -302,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--motion-radius", type=float, default=None, metavar="R",
                     help="--motion-gt: largest distance (world units) from a ground-truth vertex to its Gaussian "
                     "(default: 2%% of the diagonal of the ground-truth vertices' bounding box)")
-    ev.add_argument("--views-from", default=None, metavar="DIR",
+    ev.add_argument("--views-from", type=Path, default=None, metavar="DIR",
                     help="score the split of DIR, a twin of the run's dataset (the same training frames, checked), "
                     "instead of the run's own: e.g. `pidg make-scene --held-out-on-orbit` of the same scene, whose "
                     "held-out views are novel times only -> RUN/eval_SPLIT@DIRNAME")
