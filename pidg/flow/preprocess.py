@@ -96,6 +96,17 @@ class FlowPair:
         :meth:`reversed` pair)."""
         return self.frame1.time - self.frame0.time
 
+    def moving_coverage(self) -> float | None:
+        """Share of frame t's moving pixels (its motion mask) on which the forward flow passed the forward-backward
+        check (``valid_forward``); None when the frame has no mask or nothing in it moves. What
+        ``FlowConfig.min_pair_coverage`` and ``FlowConfig.weigh_by_coverage`` judge a pair by."""
+        mask = self.frame0.mask
+        if mask is None:
+            return None
+        moving = mask.to(self.valid_forward.device)
+        count = int(moving.sum())
+        return int((self.valid_forward & moving).sum()) / count if count else None
+
     def reversed(self) -> "FlowPair":
         """The same pair run backwards in time: frame t+1 first, its backward flow as the pair's forward one (on
         frame t+1's pixels), so every consumer of a pair reads it unchanged and integrates over dt < 0."""

@@ -18,6 +18,7 @@ Terms, in the order they are summed (NOTES.md section 9):
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +54,8 @@ from pidg.render import OPAQUE_ALPHA, PreparedRender, RenderOutput
 from pidg.training.config import TrainConfig
 from pidg.training.fused_ssim import fused_ssim
 from pidg.training.motion_start import TrackTargets, identity_rows
+
+logger = logging.getLogger(__name__)
 
 
 def l1_loss(pred: Tensor, gt: Tensor) -> Tensor:
@@ -377,6 +380,8 @@ class FlowMatchingLoss(LossTerm):
         self._targets: dict[str, _CachedTarget] = {}  # _target_key(pair) -> flow_gt and what it came from
         self._pending: tuple[FlowPair, FlowTarget] | None = None  # this step's pair and target
         self._depths: dict[str, tuple[int, Tensor]] = {}  # frame name -> (step, its depth in that step's render)
+        if config.min_pair_coverage > 0 or config.weigh_by_coverage:
+            self._log_coverage()
 
     def active(self, step: int) -> bool:
         return self.config.active(step)
@@ -393,14 +398,43 @@ class FlowMatchingLoss(LossTerm):
             self._pending = (pair, target)
 
     def pair_for(self, frame: Frame) -> FlowPair | None:
-        """The pair this step's frame is matched with (``FlowConfig.directions``); None if it has none."""
+        """The pair this step's frame is matched with (``FlowConfig.directions``); None if it has none, or if its
+        flow covers too little of the frame's moving pixels (``FlowConfig.min_pair_coverage``)."""
         ahead = self.cache.pair_starting_at(frame)
         if self.config.directions == "forward":
-            return ahead
-        back = self.cache.pair_back_from(frame)
-        if ahead is None or back is None:
-            return ahead or back
-        return back if bool(torch.rand((), generator=self.generator) < 0.5) else ahead
+            pair = ahead
+        else:
+            back = self.cache.pair_back_from(frame)
+            if ahead is None or back is None:
+                pair = ahead or back
+            else:
+                pair = back if bool(torch.rand((), generator=self.generator) < 0.5) else ahead
+        return pair if pair is None or self.trusted(pair) else None
+
+    def pair_weight(self, pair: FlowPair) -> float:
+        """The pair's weight in the flow loss: its coverage of frame t's moving pixels with
+        ``FlowConfig.weigh_by_coverage`` (1 where the frame has no mask), else 1."""
+        coverage = pair.moving_coverage() if self.config.weigh_by_coverage else None
+        return 1.0 if coverage is None else coverage
+
+    def _log_coverage(self) -> None:
+        """Say which pairs the coverage options leave out or weigh down (those under a half), with their coverage."""
+        pairs = [self.cache.pair(k) for k in range(len(self.cache))]
+        pairs += [p.reversed() for p in pairs] if self.config.directions == "both" else []
+        covered = [(p, p.moving_coverage()) for p in pairs]
+        low = ", ".join(f"{p.frame0.name}->{p.frame1.name} {c:.2f}" for p, c in covered if c is not None and c < 0.5)
+        left_out = sum(not self.trusted(p) for p in pairs)
+        logger.info("flow loss: %d of %d pairs left out (--flow.min_pair_coverage %g), weighed by their coverage of "
+                    "frame t's moving pixels: %s (--flow.weigh_by_coverage); pairs under 0.5: %s", left_out, len(pairs),
+                    self.config.min_pair_coverage, "yes" if self.config.weigh_by_coverage else "no", low or "none")
+
+    def trusted(self, pair: FlowPair) -> bool:
+        """Whether the pair's flow passed the consistency check on enough of frame t's moving pixels
+        (``FlowConfig.min_pair_coverage``; always with 0, or where the frame has no motion mask)."""
+        if self.config.min_pair_coverage == 0:
+            return True
+        coverage = pair.moving_coverage()
+        return coverage is None or coverage >= self.config.min_pair_coverage
 
     def render_features(self, inputs: StepInputs) -> Tensor | None:
         if self._pending is None:
@@ -419,9 +453,10 @@ class FlowMatchingLoss(LossTerm):
     def loss(self, inputs: StepInputs, render: RenderOutput, features: Tensor | None) -> tuple[Tensor, dict[str, float]]:
         if self._pending is None or features is None:
             return render.rgb.new_zeros(()), {}
-        (_, target), self._pending = self._pending, None
+        (pair, target), self._pending = self._pending, None
         result = supervised_flow_loss(features, render.alpha, target, self.config)
-        return self.config.lambda_lpfm * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}
+        weight = self.config.lambda_lpfm * self.pair_weight(pair)
+        return weight * result.loss, {k if k == "lpfm" else f"lpfm_{k}": v for k, v in result.scalars().items()}
 
     def observe(self, inputs: StepInputs, render: RenderOutput) -> None:
         if not self._renders_depth(inputs.frame):

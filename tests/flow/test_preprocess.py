@@ -22,7 +22,7 @@ from pidg.flow.optical_flow import (
     pixel_centers,
     upsampled,
 )
-from pidg.flow.preprocess import INDEX_FILE, preprocess_flow
+from pidg.flow.preprocess import INDEX_FILE, FlowPair, preprocess_flow
 
 pytest.importorskip("cv2")
 
@@ -154,6 +154,24 @@ def test_cache_layout_and_contents(scene: SceneData, tmp_path: Path):
     # the ring moves and the camera orbits: real flow, mostly consistent
     assert pair.forward.norm(dim=-1).mean() > 0.5
     assert pair.valid_forward.float().mean() > 0.5
+
+
+def test_moving_coverage_is_the_share_of_the_masks_pixels_whose_flow_passed_the_check(scene: SceneData):
+    frame0, frame1 = scene.train[0], replace(scene.train[1], mask=None)
+    h, w = 48, 64
+    mask, valid = torch.zeros(h, w, dtype=torch.bool), torch.zeros(h, w, dtype=torch.bool)
+    mask[10:12, 20:25] = True  # 10 moving pixels
+    valid[10, 20:23] = True  # 3 of them consistent
+    valid[30:40, 30:40] = True  # consistent pixels outside the mask do not count
+    flow = torch.zeros(h, w, 2)
+
+    def pair(frame_mask: torch.Tensor | None) -> FlowPair:
+        return FlowPair(0, replace(frame0, mask=frame_mask), frame1, flow, flow, valid, ~valid)
+
+    assert pair(mask).moving_coverage() == pytest.approx(0.3)
+    assert pair(mask).reversed().moving_coverage() is None  # frame1 has no mask
+    assert pair(None).moving_coverage() is None
+    assert pair(torch.zeros_like(mask)).moving_coverage() is None  # nothing moves: nothing to judge
 
 
 def test_cache_is_incremental(scene: SceneData, tmp_path: Path):

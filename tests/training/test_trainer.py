@@ -245,6 +245,65 @@ def test_both_directions_match_a_frame_with_the_pair_back_half_the_time(scene, t
     assert torch.equal(term.generator.get_state(), state)
 
 
+def test_min_pair_coverage_leaves_out_the_pairs_whose_flow_failed_on_the_moving_pixels(scene, tmp_path):
+    """--flow.min_pair_coverage C: a step's pair is used only where its consistent forward flow covers at least C of
+    frame t's motion mask; the steps of a left-out pair have no flow term, the others train as before; frames without
+    a mask keep their pair; 0 keeps every pair."""
+    cfg = physics_flow_config(tmp_path)
+    cfg.flow = dataclasses.replace(cfg.flow, min_pair_coverage=0.5)
+    trainer = Trainer(cfg, scene)
+    term, cache = next(t for t in trainer.loss_terms if t.name == "lpfm"), trainer.flow_cache
+    frames = cache.frames
+    assert all(f.mask is not None and bool(f.mask.any()) for f in frames[:-1])
+    # the flow of pair 1 fails on all but a corner of frame 1's moving pixels; pair 2 passes on all of them
+    moving = frames[1].mask
+    keep = torch.zeros_like(moving)
+    ys, xs = moving.nonzero(as_tuple=True)
+    keep[ys[: len(ys) // 5], xs[: len(xs) // 5]] = True
+    cache.valid_forward[1] = cache.valid_forward[1] & keep
+    cache.valid_forward[2] = cache.valid_forward[2] | frames[2].mask
+    assert cache.pair(1).moving_coverage() < 0.2 < 0.99 < cache.pair(2).moving_coverage() == 1.0
+    assert term.pair_for(frames[1]) is None
+    assert term.pair_for(frames[2]).index == 2
+    assert all((term.pair_for(f) is None) == (cache.pair(k).moving_coverage() < 0.5) for k, f in enumerate(frames[:-1]))
+    unmasked = dataclasses.replace(cache.pair(1), frame0=dataclasses.replace(frames[1], mask=None))
+    assert unmasked.moving_coverage() is None and term.trusted(unmasked)  # no mask to judge by: kept
+    every = next(t for t in Trainer(physics_flow_config(tmp_path / "every"), scene).loss_terms if t.name == "lpfm")
+    every.cache.valid_forward[1] = every.cache.valid_forward[1] & keep
+    assert every.pair_for(frames[1]).index == 1  # 0 (the default): every pair
+    # a step on frame 1 has no flow term, a step on frame 2 has one
+    for frame, flow_term in ((frames[1], False), (frames[2], True)):
+        trainer.next_frame = lambda frame=frame: frame
+        assert ("lpfm" in trainer.train_step()) == flow_term
+
+
+def test_weigh_by_coverage_scales_a_pairs_flow_loss_by_its_share_of_the_moving_pixels(scene, tmp_path):
+    """--flow.weigh_by_coverage: a step's flow term is lambda_lpfm x coverage x L_LPFM (its reported lpfm, unweighted, is
+    the same), so of two runs identical but for the option, one step on a frame whose pair covers c of its moving
+    pixels differs in its loss by lambda_lpfm (1 - c) L_LPFM; a pair of a frame without a mask weighs 1."""
+    losses, parts = {}, {}
+    for weigh in (False, True):
+        cfg = physics_flow_config(tmp_path / str(weigh))
+        cfg.flow = dataclasses.replace(cfg.flow, weigh_by_coverage=weigh)
+        trainer = Trainer(cfg, scene)
+        term, cache = next(t for t in trainer.loss_terms if t.name == "lpfm"), trainer.flow_cache
+        keep = torch.zeros_like(cache.frames[1].mask)
+        ys, xs = cache.frames[1].mask.nonzero(as_tuple=True)
+        keep[ys[: len(ys) // 3], xs[: len(xs) // 3]] = True
+        cache.valid_forward[1] = cache.valid_forward[1] & keep
+        coverage = cache.pair(1).moving_coverage()
+        assert 0.05 < coverage < 0.35
+        assert term.pair_weight(cache.pair(1)) == (coverage if weigh else 1.0)
+        unmasked = dataclasses.replace(cache.pair(1), frame0=dataclasses.replace(cache.frames[1], mask=None))
+        assert term.pair_weight(unmasked) == 1.0
+        trainer.next_frame = lambda frame=cache.frames[1]: frame
+        parts[weigh] = trainer.train_step()
+        losses[weigh] = parts[weigh]["loss"]
+    assert parts[True]["lpfm"] == pytest.approx(parts[False]["lpfm"], rel=1e-6)
+    expected = cfg.flow.lambda_lpfm * (1 - coverage) * parts[False]["lpfm"]
+    assert expected > 1e-6 and losses[False] - losses[True] == pytest.approx(expected, rel=1e-3)
+
+
 def test_the_depth_change_term_trains_v_along_the_rays_where_the_data_has_depth(scene, rgbd_scene, tmp_path):
     cfg = physics_flow_config(tmp_path, iterations=8)
     cfg.flow = dataclasses.replace(cfg.flow, lambda_depth_change=1.0)
