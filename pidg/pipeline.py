@@ -154,7 +154,7 @@ def evaluate_motion_and_save(
     subfolder instead of eval_SPLIT."""
     truth = truth if truth is not None else read_motion_gt(scene.root)
     integration = flow.velocity_integration if flow is not None else "euler"
-    out_dir = Path(run_dir) / (folder or f"eval_{split}")
+    out_dir = Path(run_dir) / (folder or eval_folder_name(split))
 
     def save_picture(flows: FrameFlows) -> None:
         image, scale = truth_flow_comparison(flows)
@@ -180,7 +180,7 @@ def evaluate_and_save(
     """Metrics of a model on a split of its scene, with renders, ground truth and depth, in RUN/eval_SPLIT/ (or
     RUN/``folder``)."""
     info = {} if iterations is None else {"iterations": iterations}
-    return evaluate_model(model, scene.frames(split), Path(run_dir) / (folder or f"eval_{split}"), usable_lpips_nets(lpips_nets), info)
+    return evaluate_model(model, scene.frames(split), Path(run_dir) / (folder or eval_folder_name(split)), usable_lpips_nets(lpips_nets), info)
 
 
 def usable_lpips_nets(lpips_nets: tuple[NetName, ...]) -> tuple[NetName, ...]:
