@@ -11,8 +11,11 @@ the truth carries the points from the first frame (0 = right, 1 = as far off as 
 with the interval in which it grows most (a chain carries an error forward, so that interval is where the track
 broke; whether the tracker marked it fitted says whether its own flag could have told); the step error, each
 point's move from one training frame to the next against the true move (what a flow sees), as a share of the true
-moves (0 = right, 1 = as far off as not moving); how many training intervals the body was tracked through; and the
-share of them in which a motion was fitted (the others carried at rest or at constant velocity).
+moves (0 = right, 1 = as far off as not moving); the move error, each point's move against the move its body truly
+makes at the point's tracked position (the velocity a flow sees where the track is: a track that has drifted to
+another part of its body but moves with it scores 0 here and not in the step error, which a rolling body's drift in
+orientation fills); how many training intervals the body was tracked through; and the share of them in which a
+motion was fitted (the others carried at rest or at constant velocity).
 """
 from __future__ import annotations
 
@@ -48,6 +51,8 @@ class BodyScore:
     error: float | None  # mean position error over the tracked frames, world units
     relative: float | None  # pooled error / pooled true travel from the first frame
     step_relative: float | None  # pooled error of the frame-to-frame moves / pooled true moves
+    move_relative: float | None  # pooled error of the moves against the body's true move at the tracked positions /
+    # pooled true moves there
     error_by_frame: list[float | None] = field(default_factory=list)  # mean position error at each training frame
     # (world units; None where the body is not tracked or not scored)
     worst_interval: int | None = None  # the interval k (frame k to k + 1) in which that error grows most
@@ -62,30 +67,49 @@ class TrackBenchResult:
     seconds: float  # the tracking's wall time on this machine
     relative: float | None  # over every scored point and tracked frame
     step_relative: float | None  # over every scored point and tracked interval
+    move_relative: float | None  # over every scored point and tracked interval
     tracked_share: float  # share of (point, frame) entries tracked
     bodies: list[BodyScore] = field(default_factory=list)
     not_scored: list[str] = field(default_factory=list)  # objects of non-rigid kinds
 
 
-def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, Tensor]:
-    """Where the true motion carries each tracked point ([T, P, 3], world units; NaN for points nearest a non-rigid
-    object) and the object index of each point."""
+def true_poses(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, Tensor, Tensor]:
+    """The object index of each tracked point [P] (its nearest true vertex's at the first training frame), and each
+    object's true motion from the first training frame to each one, rotations [O, T, 3, 3] and shifts [O, T, 3]
+    (the Kabsch fit of its vertices: exact for a rigid or keyframed object; NaN for objects of other kinds)."""
     vertices = truth.vertices
     samples = [vertices.index_of(float(t)) for t in tracks.times]
     first = torch.as_tensor(vertices.positions[samples[0]], dtype=torch.float64)
-    start = tracks.positions[0]
-    objects = truth.vertex_objects(unowned=0)[torch.cdist(start, first).argmin(1)]
-    out = torch.full_like(tracks.positions, float("nan"))
+    objects = truth.vertex_objects(unowned=0)[torch.cdist(tracks.positions[0], first).argmin(1)]
+    rotations = torch.full((len(truth.objects), len(samples), 3, 3), float("nan"), dtype=torch.float64)
+    shifts = torch.full((len(truth.objects), len(samples), 3), float("nan"), dtype=torch.float64)
     for index, obj in enumerate(truth.objects):
-        rows = objects == index
-        if obj.kind not in RIGID_KINDS or not bool(rows.any()):
+        if obj.kind not in RIGID_KINDS:
             continue
         own = slice(obj.first_vertex, obj.first_vertex + obj.n_vertices)
         for k, sample in enumerate(samples):
             later = torch.as_tensor(vertices.positions[sample][own], dtype=torch.float64)
-            rotation, shift = rigid_fit(first[own], later)
-            out[k, rows] = start[rows] @ rotation.T + shift
-    return out, objects
+            rotations[index, k], shifts[index, k] = rigid_fit(first[own], later)
+    return objects, rotations, shifts
+
+
+def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, Tensor]:
+    """Where the true motion carries each tracked point ([T, P, 3], world units; NaN for points nearest a non-rigid
+    object) and the object index of each point."""
+    objects, rotations, shifts = true_poses(tracks, truth)
+    start = tracks.positions[0]
+    out = (start[None, :, None, :] @ rotations[objects].transpose(0, 1).transpose(-1, -2))[..., 0, :]
+    return out + shifts[objects].transpose(0, 1), objects
+
+
+def true_moves(tracks: RigidTracks, truth: MotionGroundTruth) -> Tensor:
+    """[T - 1, P, 3]: the move the body of each tracked point truly makes from training frame k to k + 1 at the
+    point's tracked position at frame k (world units; NaN for points nearest a non-rigid object)."""
+    objects, rotations, shifts = true_poses(tracks, truth)
+    rotation, shift = rotations[objects].transpose(0, 1), shifts[objects].transpose(0, 1)  # [T, P, 3, 3], [T, P, 3]
+    step = rotation[1:] @ rotation[:-1].transpose(-1, -2)  # frame k to k + 1: x_{k+1} = step x_k + (t_{k+1} - step t_k)
+    at = tracks.positions[:-1]
+    return ((step - torch.eye(3, dtype=step.dtype)) @ at[..., None])[..., 0] + shift[1:] - (step @ shift[:-1, ..., None])[..., 0]
 
 
 def _share(error: Tensor, truth: Tensor) -> float | None:
@@ -94,9 +118,11 @@ def _share(error: Tensor, truth: Tensor) -> float | None:
     return float(error.sum()) / total if total > 0 else None
 
 
-def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float | None, float | None, list[BodyScore], list[str]]:
-    """(pooled relative position error, pooled relative step error, per-body scores, objects not scored) of
-    ``tracks`` against ``truth``."""
+def score_tracks(
+    tracks: RigidTracks, truth: MotionGroundTruth,
+) -> tuple[float | None, float | None, float | None, list[BodyScore], list[str]]:
+    """(pooled relative position error, pooled relative step error, pooled relative move error, per-body scores,
+    objects not scored) of ``tracks`` against ``truth``."""
     expected, objects = true_positions(tracks, truth)
     error = (tracks.positions - expected).norm(dim=-1)
     travel = (expected - expected[0]).norm(dim=-1)
@@ -104,6 +130,9 @@ def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float |
     step_error = ((tracks.positions[1:] - tracks.positions[:-1]) - (expected[1:] - expected[:-1])).norm(dim=-1)
     step = (expected[1:] - expected[:-1]).norm(dim=-1)
     step_scored = scored[1:] & scored[:-1]
+    truly = true_moves(tracks, truth)
+    move_error = ((tracks.positions[1:] - tracks.positions[:-1]) - truly).norm(dim=-1)
+    move = truly.norm(dim=-1)
     bodies = []
     for bi in range(int(tracks.body.max()) + 1):
         rows = tracks.body == bi
@@ -124,11 +153,13 @@ def score_tracks(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[float |
             error=float(body_error.mean()) if len(body_error) else None,
             relative=_share(body_error, body_travel),
             step_relative=_share(step_error[:, rows][step_scored[:, rows]], step[:, rows][step_scored[:, rows]]),
+            move_relative=_share(move_error[:, rows][step_scored[:, rows]], move[:, rows][step_scored[:, rows]]),
             error_by_frame=by_frame, worst_interval=worst, worst_growth=worst_growth,
             worst_fitted=None if worst is None else bool(tracks.found[worst, bi]),
         ))
     not_scored = [o.name for o in truth.objects if o.kind not in RIGID_KINDS]
-    return _share(error[scored], travel[scored]), _share(step_error[step_scored], step[step_scored]), bodies, not_scored
+    return (_share(error[scored], travel[scored]), _share(step_error[step_scored], step[step_scored]),
+            _share(move_error[step_scored], move[step_scored]), bodies, not_scored)
 
 
 def run_rigid_tracks_bench(dataset: Path, seed: int = 42, out: Path | None = None) -> TrackBenchResult:
@@ -143,8 +174,8 @@ def run_rigid_tracks_bench(dataset: Path, seed: int = 42, out: Path | None = Non
     began = time.perf_counter()
     tracks = track_rigid_bodies(cache, RigidTrackConfig(), torch.Generator().manual_seed(seed))
     seconds = time.perf_counter() - began
-    relative, step_relative, bodies, not_scored = score_tracks(tracks, truth)
-    result = TrackBenchResult(str(dataset), len(tracks.times) - 1, seconds, relative, step_relative,
+    relative, step_relative, move_relative, bodies, not_scored = score_tracks(tracks, truth)
+    result = TrackBenchResult(str(dataset), len(tracks.times) - 1, seconds, relative, step_relative, move_relative,
                               float(tracks.known.float().mean()), bodies, not_scored)
     print(format_result(result))
     if out is not None:
@@ -167,15 +198,15 @@ def format_result(result: TrackBenchResult) -> str:
 
     lines = [f"rigid-body tracks of {result.dataset}: {len(result.bodies)} bodies, {result.intervals} training "
              f"intervals, {result.seconds:.0f} s; relative position error {num(result.relative)}, step error "
-             f"{num(result.step_relative)} (0 = the truth, 1 = no better "
+             f"{num(result.step_relative)}, move error {num(result.move_relative)} (0 = the truth, 1 = no better "
              f"than standing still), {100 * result.tracked_share:.0f} % of (point, frame) entries tracked",
-             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative | step | "
+             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative | step | move | "
              "error (world) grows most in |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for b in result.bodies:
         lines.append(f"| {b.body} | {b.object or '(not rigid)'} | {b.points} | {100 * b.on_object:.0f} % | "
                      f"{b.tracked_intervals}/{result.intervals} | {100 * b.fitted:.0f} % | {num(b.error)} | "
-                     f"{num(b.relative)} | {num(b.step_relative)} | {_worst(b)} |")
+                     f"{num(b.relative)} | {num(b.step_relative)} | {num(b.move_relative)} | {_worst(b)} |")
     if result.not_scored:
         lines.append("not scored (not rigid): " + ", ".join(result.not_scored))
     return "\n".join(lines)

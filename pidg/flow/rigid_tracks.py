@@ -14,9 +14,9 @@ and motions chain without limit. So:
    carried points (RANSAC on three pairs, then least squares on the inliers: :func:`ransac_rigid`), its last motion
    continued (constant velocity) and rest;
 4. each candidate refined against the next frame's moving surface (its depth on the motion mask) and the flow pairs
-   at once (:func:`refine_motion`, an iterative closest point fit): the surface corrects the flow's drift and
-   carries a body through intervals where the flow fails (fast motion), the flow pins what the surface leaves free
-   (a sphere's spin);
+   at once (:func:`refine_motion`, an iterative closest point fit, point to plane: :func:`point_plane_fit`): the
+   surface corrects the flow's drift and carries a body through intervals where the flow fails (fast motion), the
+   flow pins what the surface leaves free (a sphere's spin);
 5. of the candidates that leave about the fewest of the body's points where the next frame sees through them
    (:func:`seen_through`: a right motion leaves none), the one most flow pairs agree with; when none is fitted to
    enough pairs, or even the best leaves more than ``max_seen_through``, the body stays where it is if the frame
@@ -25,9 +25,9 @@ and motions chain without limit. So:
 6. the sides of a body the first frame does not see join from the later frames: points of each frame's moving
    surface connected to a tracked body, carried back to the first frame by the inverse of its motion, then along it.
 
-Against the true motion (``pidg bench rigid-tracks``; docs/motion.md, "Rigid-body tracks that hold"): the rigid
-scene's tracks 0.12 of the travel from the truth (0.27 with the flow alone), the kinematic head's 0.006 through all
-44 intervals (with the flow alone lost at interval 16).
+Against the true motion (``pidg bench rigid-tracks``; docs/motion.md, "Rigid-body tracks that hold" and "Tracks
+fitted point to plane"): the rigid scene's tracks 0.11-0.12 of the travel from the truth over five seeds (0.27 with the
+flow alone), the kinematic head's 0.002 through all 44 intervals (with the flow alone lost at interval 16).
 
 Positions are world units, times the dataset's [0, 1]; everything runs on the CPU in float64.
 """
@@ -174,18 +174,59 @@ def rotation_angle(rotation: Tensor) -> float:
     return math.acos(max(-1.0, min(1.0, (float(torch.trace(rotation)) - 1.0) / 2.0)))
 
 
+def cross_matrix(v: Tensor) -> Tensor:
+    """[..., 3, 3] matrices [v]x with [v]x u = v x u for ``v`` [..., 3]."""
+    zero = torch.zeros_like(v[..., 0])
+    return torch.stack([torch.stack([zero, -v[..., 2], v[..., 1]], -1),
+                        torch.stack([v[..., 2], zero, -v[..., 0]], -1),
+                        torch.stack([-v[..., 1], v[..., 0], zero], -1)], -2)
+
+
+def axis_angle_rotation(axis: Tensor, angle: float) -> Tensor:
+    """The rotation [3, 3] by ``angle`` (radians) about the unit vector ``axis`` [3] (Rodrigues)."""
+    k = cross_matrix(axis)
+    return torch.eye(3, dtype=axis.dtype) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
 def _rotation_power(rotation: Tensor, s: float) -> Tensor:
-    """R^s: the same axis, s times the angle (Rodrigues)."""
+    """R^s: the same axis, s times the angle."""
     angle = rotation_angle(rotation)
     if angle < 1e-9:
         return torch.eye(3, dtype=rotation.dtype)
     axis = torch.stack([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0], rotation[1, 0] - rotation[0, 1]])
-    axis = axis / axis.norm().clamp_min(1e-12)
-    k = torch.zeros(3, 3, dtype=rotation.dtype)
-    k[0, 1], k[0, 2], k[1, 2] = -axis[2], axis[1], -axis[0]
-    k = k - k.T
-    theta = s * angle
-    return torch.eye(3, dtype=rotation.dtype) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
+    return axis_angle_rotation(axis / axis.norm().clamp_min(1e-12), s * angle)
+
+
+def point_plane_fit(
+    rotation: Tensor, shift: Tensor, a: Tensor, b: Tensor, x: Tensor, target: Tensor, normal: Tensor,
+    iterations: int = 3,
+) -> tuple[Tensor, Tensor]:
+    """The rigid motion (R, t), refined from (``rotation``, ``shift``) by Gauss-Newton steps, that carries the pairs'
+    ``a`` [N, 3] onto ``b`` (point to point) and the points ``x`` [M, 3] onto the planes through ``target`` [M, 3]
+    with unit normals ``normal`` [M, 3] (point to plane: only the distance along the normal counts), or onto
+    ``target`` itself where the normal is zero (point to point). Each step linearises the update dR = exp([w]x) about
+    the current motion and solves the 6-unknown least squares for (w, dt) in one go. Why not Kabsch to the points
+    moved onto the planes: those targets keep the current motion along each plane, so every round the surface pulls
+    the turn back toward where it started, and a sphere's spin or a face's slide, which only the pairs can tell,
+    stays biased toward the start (the rigid scene's tracks were 0.16 of the travel off with it over five seeds, 0.12
+    with this: docs/motion.md, "Tracks fitted point to plane")."""
+    eye = torch.eye(3, dtype=x.dtype)
+    point = (normal == 0).all(-1)
+    for _ in range(iterations):
+        ya, yx = a @ rotation.T + shift, x @ rotation.T + shift
+        both = torch.cat([ya, yx[point]])  # point-to-point rows: d(R y + t) = -[y]x w + dt
+        rows = [torch.cat([-cross_matrix(both), eye.expand(len(both), 3, 3)], -1).reshape(-1, 6),
+                torch.cat([torch.linalg.cross(yx[~point], normal[~point]), normal[~point]], -1)]  # n . (w x y + dt)
+        residuals = [torch.cat([b - ya, target[point] - yx[point]]).reshape(-1),
+                     ((target[~point] - yx[~point]) * normal[~point]).sum(-1)]
+        jacobian, residual = torch.cat(rows), torch.cat(residuals)
+        if len(residual) < 6:
+            break
+        step = torch.linalg.lstsq(jacobian, residual[:, None]).solution[:, 0]
+        w, angle = step[:3], float(step[:3].norm())
+        turn = axis_angle_rotation(w / angle, angle) if angle > 1e-12 else eye
+        rotation, shift = turn @ rotation, shift @ turn.T + step[3:]
+    return rotation, shift
 
 
 def _constant_velocity(x: Tensor, rotation: Tensor, shift: Tensor, s: float) -> tuple[Tensor, Tensor]:
@@ -248,12 +289,12 @@ def refine_motion(
 ) -> tuple[Tensor, Tensor, int, int]:
     """The motion (R, t) of a body's points ``x`` [N, 3] fitted, from (``rotation``, ``shift``), to the flow pairs
     ``a`` -> ``b`` and to the surface ``frame`` shows (``surface``: points and normals, :func:`moving_surface`) at
-    once: each round one Kabsch fit to the pairs within ``inlier`` of the current motion and to the carried points
-    ``frame`` does not see hidden (behind its surface), each paired with its nearest surface point within ``reach``
-    (3x on the first rounds): an iterative closest point fit. Inside the surface a pair's target is moved along the
-    surface's normal only (point to plane: where the samples lie on it must not pull the body along it); on its outline
-    point to point. The flow pins what the surface leaves free (a sphere's spin, a plane's slide), the surface corrects
-    the flow's drift and its failures. Returns (R, t, flow pairs used, surface pairs used)."""
+    once: each round one fit (:func:`point_plane_fit`) to the pairs within ``inlier`` of the current motion and to the
+    carried points ``frame`` does not see hidden (behind its surface), each paired with its nearest surface point
+    within ``reach`` (3x on the first rounds): an iterative closest point fit. Inside the surface only the distance
+    along the surface's normal counts (point to plane: where the samples lie on it must not pull the body along it);
+    on its outline point to point. The flow pins what the surface leaves free (a sphere's spin, a plane's slide), the
+    surface corrects the flow's drift and its failures. Returns (R, t, flow pairs used, surface pairs used)."""
     n_flow = n_surface = 0
     for round_ in range(rounds):
         flow = (a @ rotation.T + shift - b).norm(dim=1) < inlier
@@ -262,20 +303,18 @@ def refine_motion(
         measured = frame.depth.double()[i, j]
         cut = 3 * reach if round_ < rounds // 2 else reach
         pairs = inside & ((measured <= 0) | (z < measured + inlier))  # not hidden
-        target = moved
+        target, normal = moved, torch.zeros_like(moved)
         points, normals = surface
         if len(points) and bool(pairs.any()):
             distance, nearest = _nearest(moved, points)
             pairs &= distance < cut
-            offset, n = points[nearest] - moved, normals[nearest]
-            along = (n != 0).any(1, keepdim=True)  # off the outline: only the distance along the normal counts
-            target = moved + torch.where(along, (offset * n).sum(1, keepdim=True) * n, offset)
+            target, normal = points[nearest], normals[nearest]  # a zero normal: the outline
         else:
             pairs = torch.zeros_like(pairs)
         n_flow, n_surface = int(flow.sum()), int(pairs.sum())
         if n_flow + n_surface < 3:
             break
-        rotation, shift = rigid_fit(torch.cat([a[flow], x[pairs]]), torch.cat([b[flow], target[pairs]]))
+        rotation, shift = point_plane_fit(rotation, shift, a[flow], b[flow], x[pairs], target[pairs], normal[pairs])
     return rotation, shift, n_flow, n_surface
 
 

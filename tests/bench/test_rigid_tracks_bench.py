@@ -47,7 +47,7 @@ def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
     found = torch.ones(frames - 1, 3, dtype=torch.bool)
     found[0, 0] = False
     tracks = RigidTracks(torch.tensor(truth.vertices.times), off, known, body, torch.zeros(0, 3), found)
-    relative, step_relative, bodies, not_scored = score_tracks(tracks, truth)
+    relative, step_relative, move_relative, bodies, not_scored = score_tracks(tracks, truth)
     travel = (expected[:, :3] - expected[0, :3]).norm(dim=-1)
     scored = known[:, :3]
     assert math.isclose(relative, 0.05 * int(scored[1:].sum()) / float(travel[scored].sum()), rel_tol=1e-5)  # float32 vertices
@@ -56,6 +56,8 @@ def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
     stepped = scored[1:] & scored[:-1]
     assert math.isclose(step_relative, 0.05 * 3 / float(steps[stepped].sum()), rel_tol=1e-5)
     assert math.isclose(bodies[1].step_relative, 0.05 / float(steps[:3, 2].sum()), rel_tol=1e-5)  # lost at the last frame
+    # an offset along the turn's axis moves as the point itself: the move error is the step error here
+    assert math.isclose(move_relative, step_relative, rel_tol=1e-5) and bodies[2].move_relative is None
     assert not_scored == ["sheet"]
     assert [b.object for b in bodies] == ["cube", "cube", ""]  # body 2 lies on the cloth: not scored
     assert bodies[2].relative is None and bodies[2].error is None
@@ -71,6 +73,32 @@ def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
     assert (bodies[1].worst_interval, bodies[1].worst_fitted) == (0, True)
     assert math.isclose(bodies[1].worst_growth, 0.05, rel_tol=1e-5)
     assert bodies[2].worst_interval is None
-    text = format_result(TrackBenchResult("scene", 4, 1.0, relative, step_relative, 0.95, bodies, not_scored))
+    text = format_result(TrackBenchResult("scene", 4, 1.0, relative, step_relative, move_relative, 0.95, bodies, not_scored))
     assert "| 2 | (not rigid) |" in text and "not scored (not rigid): sheet" in text
     assert "interval 0 (+0.050, carried) |" in text and "interval 0 (+0.050, fitted) |" in text
+
+
+def test_a_track_drifted_to_another_part_of_its_body_moves_right_there():
+    """A track that jumps, over interval 1, from one corner of the turning cube to the opposite one, then follows
+    that corner: its step error counts every later move against the first corner's (the turn moves opposite corners
+    opposite ways), while its move error counts only the jump, each later move being what the cube does where the
+    track is."""
+    frames = 5
+    truth = truth_of_a_turning_cube_and_a_cloth(frames)
+    corner, opposite = torch.tensor([[0.5, 0.5, 0.5]], dtype=torch.float64), torch.tensor([[-0.5, -0.5, 0.5]], dtype=torch.float64)
+
+    def carried(point: torch.Tensor, k: int) -> torch.Tensor:
+        c, s = math.cos(0.1 * k), math.sin(0.1 * k)
+        rotation = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        return point @ rotation.T + torch.tensor([0.2 * k, 0.0, 0.0], dtype=torch.float64)
+
+    positions = torch.stack([carried(corner if k <= 1 else opposite, k) for k in range(frames)])
+    tracks = RigidTracks(torch.tensor(truth.vertices.times), positions, torch.ones(frames, 1, dtype=torch.bool),
+                         torch.zeros(1, dtype=torch.long), torch.zeros(0, 3), torch.ones(frames - 1, 1, dtype=torch.bool))
+    _, step_relative, move_relative, bodies, _ = score_tracks(tracks, truth)
+    moves = torch.stack([carried(corner, k + 1) - carried(corner, k) for k in range(frames - 1)])[:, 0]
+    there = torch.stack([carried(corner if k <= 1 else opposite, k + 1) - carried(corner if k <= 1 else opposite, k)
+                         for k in range(frames - 1)])[:, 0]  # the true moves where the track is
+    jump = float((positions[2, 0] - positions[1, 0] - moves[1]).norm())
+    assert math.isclose(move_relative, jump / float(there.norm(dim=-1).sum()), rel_tol=1e-5)
+    assert step_relative > move_relative + 0.1 and bodies[0].move_relative == move_relative

@@ -14,8 +14,11 @@ from pidg.flow.rigid_tracks import (
     _constant_velocity,
     _rotation_power,
     connected_labels,
+    axis_angle_rotation,
+    cross_matrix,
     lifted_pairs,
     moving_surface,
+    point_plane_fit,
     ransac_rigid,
     refine_motion,
     rigid_fit,
@@ -66,6 +69,51 @@ def test_rigid_fit_batched_fits_each_set_on_its_own():
     for k in (0, 1, 3):
         torch.testing.assert_close(r[k], rotations[k], atol=1e-10, rtol=0)
         torch.testing.assert_close(t[k], shifts[k], atol=1e-10, rtol=0)
+
+
+def test_cross_matrix_and_axis_angle_rotation_against_closed_forms():
+    gen = torch.Generator().manual_seed(4)
+    v, u = torch.randn(2, 5, 3, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(cross_matrix(v) @ u[..., None], torch.linalg.cross(v, u)[..., None], atol=1e-12, rtol=0)
+    torch.testing.assert_close(axis_angle_rotation(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), 0.3),
+                               rotation_z(0.3), atol=1e-12, rtol=0)
+    rotation = random_rotation(gen)
+    assert abs(rotation_angle(_rotation_power(rotation, 0.25)) - 0.25 * rotation_angle(rotation)) < 1e-10
+
+
+def test_point_plane_fit_recovers_a_motion_from_pairs_as_kabsch_does():
+    gen = torch.Generator().manual_seed(5)
+    a = torch.randn(40, 3, generator=gen, dtype=torch.float64)
+    rotation, shift = random_rotation(gen), torch.tensor([0.3, -1.0, 2.0], dtype=torch.float64)
+    eye, none = torch.eye(3, dtype=torch.float64), a[:0]
+    r, t = point_plane_fit(eye, torch.zeros(3, dtype=torch.float64), a, a @ rotation.T + shift, none, none, none,
+                           iterations=12)
+    kabsch = rigid_fit(a, a @ rotation.T + shift)
+    torch.testing.assert_close(r, kabsch[0], atol=1e-9, rtol=0)
+    torch.testing.assert_close(t, kabsch[1], atol=1e-9, rtol=0)
+
+
+def test_point_plane_fit_takes_a_faces_slide_and_turn_from_the_pairs():
+    """A face (the plane z = 5) slides and turns in its plane and moves 0.2 toward the camera. Its surface, point to
+    plane, tells only the move along its normal; ten exact flow pairs tell the rest. From rest the fit finds the
+    motion exactly. Kabsch to the same surface pairs moved onto the plane (the rule before) stays short of the slide
+    and the turn: each such target keeps the start's motion along the plane, so the surface holds the body back."""
+    gen = torch.Generator().manual_seed(6)
+    x = torch.cat([torch.rand(200, 2, generator=gen, dtype=torch.float64) * 2 - 1,
+                   torch.full((200, 1), 5.0, dtype=torch.float64)], 1)
+    turn, shift = rotation_z(0.1), torch.tensor([0.15, -0.05, -0.2], dtype=torch.float64)  # about the z axis
+    a = x[:10]
+    eye, zero = torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
+    target = x.clone()
+    target[:, 2] = 4.8  # the next frame's plane where the start (rest) puts each point: moved along the normal only
+    normal = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(200, 3)
+    r, t = point_plane_fit(eye, zero, a, a @ turn.T + shift, x, target, normal)
+    torch.testing.assert_close(r, turn, atol=1e-9, rtol=0)
+    torch.testing.assert_close(t, shift, atol=1e-9, rtol=0)
+    kabsch = rigid_fit(torch.cat([a, x]), torch.cat([a @ turn.T + shift, target]))
+    assert rotation_angle(kabsch[0]) < 0.02 and float((kabsch[1] - shift)[:2].norm()) > 0.1
+    outline = point_plane_fit(eye, zero, a[:0], a[:0], x, x @ turn.T + shift, torch.zeros_like(x))  # point to point
+    torch.testing.assert_close(outline[0], turn, atol=1e-9, rtol=0)
 
 
 def test_ransac_finds_the_motion_most_pairs_agree_with():
@@ -196,8 +244,12 @@ def test_two_bodies_are_tracked_to_their_true_positions_through_a_gap_and_a_wron
     for k in range(8):  # a pixel spans 0.078 world units here
         error = (tracks.positions[k] - truth(tracks.positions[0], k)).norm(dim=1)
         assert float(error[left].max()) < 0.02  # body 0, its flow wrong over interval 5, not taken: within a quarter px
-        # body 1 through two intervals without flow, its face's outline paired point to point: within 0.8 px
-        assert float(error[~left].max()) < 0.06
+        # body 1 through two intervals without flow, its face's outline paired point to point: within 1.1 px. Only
+        # the outline pins a face's slide in its own plane, and each outline sample pulls a point to a pixel centre:
+        # this face, parallel to the image, is the worst case (1.0 px here; 0.6 px with the Kabsch rule before the
+        # point-to-plane fit, which the generated scenes' tracks favour: docs/motion.md, "Tracks fitted point to
+        # plane")
+        assert float(error[~left].max()) < 0.085
     assert tracks.static.shape == (50, 3) and bool(((tracks.static[:, 2] - 9.0).abs() < 1e-4).all())
 
 
@@ -215,11 +267,10 @@ def test_a_wrong_flow_motion_leaves_points_where_the_next_frame_sees_through_the
     assert seen_through(torch.tensor([[0.0, 0.0, -1.0]], dtype=torch.float64), frames[2], 0.05) == 0.0  # not in view
 
 
-def test_refine_motion_fits_a_sphere_s_position_to_the_surface_and_its_turn_to_the_flow():
+def turning_sphere() -> tuple[Frame, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """A sphere (radius 1, at depth 5; a pixel spans 0.08 there) seen by one camera, turning 0.15 rad about its centre
-    as it moves: flow pairs 0.06 too near the camera (a depth error) place it 0.06 off; fitted to its surface as well,
-    the motion is nearer the truth and keeps the flow's turn, which the surface cannot tell. The surface alone, from
-    0.15 off, finds where it is."""
+    as it moves: (the next frame, the points of its side the camera sees, its turn, its shift, its centre before and
+    after)."""
     radius, centre = 1.0, torch.tensor([0.1, -0.05, DEPTH], dtype=torch.float64)
     ys, xs = torch.meshgrid(torch.arange(SIZE, dtype=torch.float64) + 0.5, torch.arange(SIZE, dtype=torch.float64) + 0.5,
                             indexing="ij")
@@ -235,7 +286,14 @@ def test_refine_motion_fits_a_sphere_s_position_to_the_surface_and_its_turn_to_t
     x = centre + radius * direction / direction.norm(dim=1, keepdim=True)
     x = x[x[:, 2] < centre[2] - 0.3]  # the side the camera sees
     turn = rotation_z(0.15)
-    shift = moved_centre - centre @ turn.T
+    return frame, x, turn, moved_centre - centre @ turn.T, centre, moved_centre
+
+
+def test_refine_motion_fits_a_sphere_s_position_to_the_surface_and_its_turn_to_the_flow():
+    """Flow pairs 0.06 too near the camera (a depth error) place the sphere 0.06 off; fitted to its surface as well,
+    the motion is nearer the truth and keeps the flow's turn, which the surface cannot tell. The surface alone, from
+    0.15 off, finds where it is."""
+    frame, x, turn, shift, centre, moved_centre = turning_sphere()
     truth_x = x @ turn.T + shift
     a = x[::3]
     b = a @ turn.T + shift + torch.tensor([0.0, 0.0, -0.06], dtype=torch.float64)
