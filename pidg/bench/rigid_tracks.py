@@ -107,9 +107,9 @@ def true_moves(tracks: RigidTracks, truth: MotionGroundTruth) -> Tensor:
     point's tracked position at frame k (world units; NaN for points nearest a non-rigid object)."""
     objects, rotations, shifts = true_poses(tracks, truth)
     rotation, shift = rotations[objects].transpose(0, 1), shifts[objects].transpose(0, 1)  # [T, P, 3, 3], [T, P, 3]
-    step = rotation[1:] @ rotation[:-1].transpose(-1, -2)  # frame k to k + 1: x_{k+1} = step x_k + (t_{k+1} - step t_k)
-    at = tracks.positions[:-1]
-    return ((step - torch.eye(3, dtype=step.dtype)) @ at[..., None])[..., 0] + shift[1:] - (step @ shift[:-1, ..., None])[..., 0]
+    step = rotation[1:] @ rotation[:-1].transpose(-1, -2)  # frame k to k + 1: x' = step x + (t_{k+1} - step t_k)
+    carried = (step @ tracks.positions[:-1, ..., None])[..., 0] + shift[1:] - (step @ shift[:-1, ..., None])[..., 0]
+    return carried - tracks.positions[:-1]
 
 
 def _share(error: Tensor, truth: Tensor) -> float | None:
