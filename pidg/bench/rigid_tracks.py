@@ -74,9 +74,10 @@ class TrackBenchResult:
 
 
 def true_poses(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, Tensor, Tensor]:
-    """The object index of each tracked point [P] (its nearest true vertex's at the first training frame), and each
-    object's true motion from the first training frame to each one, rotations [O, T, 3, 3] and shifts [O, T, 3]
-    (the Kabsch fit of its vertices: exact for a rigid or keyframed object; NaN for objects of other kinds)."""
+    """The object index of each tracked point [P] (its nearest true vertex's at the first training frame), and its
+    object's true motion from the first training frame to each one, rotations [T, P, 3, 3] and shifts [T, P, 3]
+    (the Kabsch fit of the object's vertices: exact for a rigid or keyframed object; NaN for objects of other
+    kinds)."""
     vertices = truth.vertices
     samples = [vertices.index_of(float(t)) for t in tracks.times]
     first = torch.as_tensor(vertices.positions[samples[0]], dtype=torch.float64)
@@ -90,23 +91,19 @@ def true_poses(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, T
         for k, sample in enumerate(samples):
             later = torch.as_tensor(vertices.positions[sample][own], dtype=torch.float64)
             rotations[index, k], shifts[index, k] = rigid_fit(first[own], later)
-    return objects, rotations, shifts
+    return objects, rotations[objects].transpose(0, 1), shifts[objects].transpose(0, 1)
 
 
-def true_positions(tracks: RigidTracks, truth: MotionGroundTruth) -> tuple[Tensor, Tensor]:
-    """Where the true motion carries each tracked point ([T, P, 3], world units; NaN for points nearest a non-rigid
-    object) and the object index of each point."""
-    objects, rotations, shifts = true_poses(tracks, truth)
-    start = tracks.positions[0]
-    out = (start[None, :, None, :] @ rotations[objects].transpose(0, 1).transpose(-1, -2))[..., 0, :]
-    return out + shifts[objects].transpose(0, 1), objects
+def true_positions(tracks: RigidTracks, rotation: Tensor, shift: Tensor) -> Tensor:
+    """[T, P, 3]: where the true motion (:func:`true_poses`' rotations and shifts) carries each tracked point from
+    the first training frame (world units; NaN for points nearest a non-rigid object)."""
+    return (rotation @ tracks.positions[0, :, :, None])[..., 0] + shift
 
 
-def true_moves(tracks: RigidTracks, truth: MotionGroundTruth) -> Tensor:
-    """[T - 1, P, 3]: the move the body of each tracked point truly makes from training frame k to k + 1 at the
-    point's tracked position at frame k (world units; NaN for points nearest a non-rigid object)."""
-    objects, rotations, shifts = true_poses(tracks, truth)
-    rotation, shift = rotations[objects].transpose(0, 1), shifts[objects].transpose(0, 1)  # [T, P, 3, 3], [T, P, 3]
+def true_moves(tracks: RigidTracks, rotation: Tensor, shift: Tensor) -> Tensor:
+    """[T - 1, P, 3]: the move the body of each tracked point truly makes from training frame k to k + 1 (from
+    :func:`true_poses`' rotations and shifts) at the point's tracked position at frame k (world units; NaN for points
+    nearest a non-rigid object)."""
     step = rotation[1:] @ rotation[:-1].transpose(-1, -2)  # frame k to k + 1: x' = step x + (t_{k+1} - step t_k)
     carried = (step @ tracks.positions[:-1, ..., None])[..., 0] + shift[1:] - (step @ shift[:-1, ..., None])[..., 0]
     return carried - tracks.positions[:-1]
@@ -123,14 +120,15 @@ def score_tracks(
 ) -> tuple[float | None, float | None, float | None, list[BodyScore], list[str]]:
     """(pooled relative position error, pooled relative step error, pooled relative move error, per-body scores,
     objects not scored) of ``tracks`` against ``truth``."""
-    expected, objects = true_positions(tracks, truth)
+    objects, rotation, shift = true_poses(tracks, truth)
+    expected = true_positions(tracks, rotation, shift)
     error = (tracks.positions - expected).norm(dim=-1)
     travel = (expected - expected[0]).norm(dim=-1)
     scored = tracks.known & torch.isfinite(error)
     step_error = ((tracks.positions[1:] - tracks.positions[:-1]) - (expected[1:] - expected[:-1])).norm(dim=-1)
     step = (expected[1:] - expected[:-1]).norm(dim=-1)
     step_scored = scored[1:] & scored[:-1]
-    truly = true_moves(tracks, truth)
+    truly = true_moves(tracks, rotation, shift)
     move_error = ((tracks.positions[1:] - tracks.positions[:-1]) - truly).norm(dim=-1)
     move = truly.norm(dim=-1)
     bodies = []
