@@ -22,12 +22,18 @@ and motions chain without limit. So:
    enough pairs, or even the best leaves more than ``max_seen_through``, the body stays where it is if the frame
    shows it off the motion mask (it came to rest), else it is carried at its last velocity for up to ``max_gap``
    intervals, then its tracks end;
-6. the sides of a body the first frame does not see join from the later frames: points of each frame's moving
+6. the chosen motion refined by the body's look (``photometric``, :class:`Look`): the surface frame t shows of the
+   body must look in frame t+1 as it does in frame t (:func:`photometric_refine`), kept only if it looks no less
+   alike (:func:`look_agreement`) and leaves no more of the body seen through. The optical flow falls short of
+   small, fast-turning bodies' motion (12 % on the generated rigid scene), the images do not; where the flow failed
+   altogether (a fast motion), every candidate the surface allows is refined so and the best-looking one chosen;
+7. the sides of a body the first frame does not see join from the later frames: points of each frame's moving
    surface connected to a tracked body, carried back to the first frame by the inverse of its motion, then along it.
 
-Against the true motion (``pidg bench rigid-tracks``; docs/motion.md, "Rigid-body tracks that hold" and "Tracks
-fitted point to plane"): the rigid scene's tracks 0.11-0.12 of the travel from the truth over five seeds (0.27 with the
-flow alone), the kinematic head's 0.002 through all 44 intervals (with the flow alone lost at interval 16).
+Against the true motion (``pidg bench rigid-tracks``; docs/motion.md, "Rigid-body tracks that hold", "Tracks fitted
+point to plane" and "Tracks fitted to the images"): the rigid scene's tracks move 0.13-0.17 of the true moves off in
+three of five seeds and 0.32-0.44 in two, where a body was lost in a fast phase (0.25-0.29 without the look; 0.30-0.36
+with a Kabsch fit), the kinematic head's 0.004 through all 44 intervals (with the flow alone lost at interval 16).
 
 Positions are world units, times the dataset's [0, 1]; everything runs on the CPU in float64.
 """
@@ -41,11 +47,17 @@ from torch import Tensor
 
 from pidg.data.scene import Frame
 from pidg.flow.decomposition import backproject, unproject_points
-from pidg.flow.optical_flow import pixel_centers
+from pidg.flow.optical_flow import pixel_centers, sample_bilinear, sample_mask
 from pidg.flow.preprocess import FlowCache, FlowPair
 
 _MIN_INLIERS = 6  # a motion fitted to fewer pairs than this is not trusted
 _SEEN_THROUGH_MARGIN = 0.05  # motions leaving up to this share more of a body seen through than the best are equals
+_MIN_LOOK_POINTS = 20  # fewest seen surface points a photometric fit or a look comparison is made on
+_PHOTOMETRIC_BLURS = (2.0, 1.0, 0.0)  # px: the photometric fit coarse to fine (a wider basin first, then the detail)
+_PHOTOMETRIC_STEPS = 4  # Gauss-Newton steps per blur
+_PHOTOMETRIC_HUBER = 0.05  # colour residuals (image units) beyond this count linearly: occlusions, highlights
+_PHOTOMETRIC_NOISE = 0.03  # the colour residual (image units) that weighs as one footprint along a surface's normal
+_PHOTOMETRIC_DAMPING = 1e-2  # Levenberg-Marquardt: this share of the normal matrix's diagonal added to it
 
 
 @dataclass(frozen=True)
@@ -78,6 +90,16 @@ class RigidTrackConfig:
     max_seen_through: float = 0.2
     """A motion that leaves more than this share of a body's points in view where the next frame sees through them
     (no surface there, or a farther one) is not trusted."""
+    photometric: bool = True
+    """Refine each fitted motion by the body's look as well (:func:`photometric_refine`): the optical flow falls
+    short of small, fast-turning bodies' motion (12 % on the rigid scene), the images themselves do not."""
+    high_pass: float = 3.0
+    """The photometric fit compares images less their blur of this width (px, the Gaussian's sigma): shading, which
+    does not turn with a body, varies slowly across it; its texture does not."""
+    max_look_drop: float = 0.05
+    """A photometric refinement is kept only if the body looks at most this much less alike in the two frames
+    (:func:`look_agreement`, a correlation in [-1, 1]) than with the motion it started from: a fit that slid into a
+    wrong minimum shows there."""
 
 
 @dataclass
@@ -229,6 +251,132 @@ def point_plane_fit(
     return rotation, shift
 
 
+def blurred(image: Tensor, sigma: float) -> Tensor:
+    """``image`` [H, W, C] blurred by a Gaussian of ``sigma`` px (separable, edges repeated; itself at sigma 0)."""
+    if sigma <= 0:
+        return image
+    radius = int(3 * sigma + 0.5)
+    kernel = torch.exp(-0.5 * (torch.arange(-radius, radius + 1, dtype=image.dtype) / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    x = image.permute(2, 0, 1)[:, None]  # [C, 1, H, W]
+    pad, conv = torch.nn.functional.pad, torch.nn.functional.conv2d
+    x = conv(pad(x, (radius, radius, 0, 0), mode="replicate"), kernel.view(1, 1, 1, -1))  # along rows
+    x = conv(pad(x, (0, 0, radius, radius), mode="replicate"), kernel.view(1, 1, -1, 1))  # along columns
+    return x[:, 0].permute(1, 2, 0)
+
+
+def masked_blur(image: Tensor, mask: Tensor, sigma: float) -> Tensor:
+    """``image`` [H, W, C] blurred by a Gaussian of ``sigma`` px within ``mask`` [H, W] only (the blur of the masked
+    image over the blur of the mask; 0 off it): a moving body's colours do not mix with the still background's."""
+    weight = mask.to(image.dtype)[..., None]
+    return blurred(image * weight, sigma) / blurred(weight, sigma).clamp_min(1e-6) * weight
+
+
+def _seen(points: Tensor, frame: Frame, tolerance: float) -> Tensor:
+    """[N] whether ``frame`` sees ``points`` [N, 3]: inside its view, within ``tolerance`` (world units) of the depth
+    it measures at their pixel."""
+    inside, z, i, j = _pixels_of(points, frame)
+    measured = frame.depth.double()[i, j]
+    return inside & (measured > 0) & ((measured - z).abs() < tolerance)
+
+
+def photometric_rows(
+    y: Tensor, colours: Tensor, image: Tensor, frame: Frame, centre: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """The colour residuals [N * C] of points ``y`` [N, 3] (world) in ``image`` [H, W, C] as ``frame``'s camera sees
+    them, against ``colours`` [N, C], and their Jacobian [N * C, 6] in the motion update (w, dt) that moves each point
+    to exp([w]x) (y - ``centre``) + ``centre`` + dt, at zero: d r / d w = (y - centre) x g, d r / d dt = g, with g
+    = dI/dy (the bilinear lookup's own gradient through the projection, by autograd: each residual depends on its own
+    point only, so one backward pass per channel gives every point's)."""
+    with torch.enable_grad():
+        at = y.detach().requires_grad_(True)
+        values, _ = sample_bilinear(image, frame.camera.project_points(at)[0])
+        gradients = [torch.autograd.grad(values[:, c].sum(), at, retain_graph=c + 1 < values.shape[1])[0]
+                     for c in range(values.shape[1])]
+    g = torch.stack(gradients, 1)  # [N, C, 3]
+    arm = (y - centre)[:, None].expand_as(g)
+    jacobian = torch.cat([torch.linalg.cross(arm, g, dim=-1), g], -1).reshape(-1, 6)
+    return (values.detach() - colours).reshape(-1), jacobian
+
+
+def photometric_refine(
+    x: Tensor, rotation: Tensor, shift: Tensor, frame0: Frame, frame1: Frame, surface: tuple[Tensor, Tensor],
+    tolerance: float, footprint: float, high_pass: float,
+) -> tuple[Tensor, Tensor]:
+    """The motion (R, t) of a body, refined from (``rotation``, ``shift``), under which its surface points ``x``
+    [N, 3] (world, lifted from ``frame0``'s depth) look in ``frame1`` as they look in ``frame0``: a direct,
+    photometric fit (Gauss-Newton with Levenberg-Marquardt damping, Huber-weighted colour residuals), coarse to fine
+    over ``_PHOTOMETRIC_BLURS``, on both images less their blur of ``high_pass`` px (shading does not turn with a
+    body). Only the points ``frame1`` sees at their moved place (within ``tolerance``, world units) count. The
+    body's points also pull point to plane toward ``surface`` (frame1's moving surface near them, points and normals:
+    :func:`moving_surface`) in the same solve, one footprint (world units a pixel spans) weighing as
+    ``_PHOTOMETRIC_NOISE`` of colour, so the look cannot take the body off the surface the depth shows. Why: the
+    optical flow's pairs fall short of small, fast-turning bodies' motion (12 % on the generated rigid scene), while
+    their texture in the images moves with them (docs/motion.md, "Tracks fitted to the images")."""
+    uv0, _ = frame0.camera.project_points(x)
+    clear = _seen(x, frame0, tolerance) & sample_mask(frame0.mask, uv0)  # not mixed with the background by the lookup
+    x, uv0 = x[clear], uv0[clear]
+    if len(x) < _MIN_LOOK_POINTS:
+        return rotation, shift
+    images = [frame.image.double() for frame in (frame0, frame1)]
+    masks = [frame.mask for frame in (frame0, frame1)]
+    if high_pass > 0:
+        images = [(image - masked_blur(image, mask, high_pass)) * mask[..., None] for image, mask in zip(images, masks)]
+    eye = torch.eye(3, dtype=x.dtype)
+    points, normals = surface
+    for sigma in _PHOTOMETRIC_BLURS:
+        image0, image1 = (masked_blur(image, mask, sigma) for image, mask in zip(images, masks))
+        colours0 = sample_bilinear(image0, uv0)[0]
+        for _ in range(_PHOTOMETRIC_STEPS):
+            y = x @ rotation.T + shift
+            use = _seen(y, frame1, tolerance) & sample_mask(frame1.mask, frame1.camera.project_points(y)[0])
+            if int(use.sum()) < _MIN_LOOK_POINTS:
+                return rotation, shift
+            centre = y[use].mean(0)
+            residual, jacobian = photometric_rows(y[use], colours0[use], image1, frame1, centre)
+            size = residual.abs()
+            weight = (_PHOTOMETRIC_HUBER / size.clamp_min(1e-12)).clamp_max(1.0)  # Huber's weights
+            residual, jacobian = residual / _PHOTOMETRIC_NOISE, jacobian / _PHOTOMETRIC_NOISE
+            if len(points):
+                distance, nearest = _nearest(y, points)
+                normal = normals[nearest]
+                near = (distance < 3 * tolerance) & (normal != 0).any(-1)
+                plane = torch.cat([torch.linalg.cross(y[near] - centre, normal[near], dim=-1), normal[near]], -1)
+                residual = torch.cat([residual, ((y[near] - points[nearest[near]]) * normal[near]).sum(-1) / footprint])
+                jacobian = torch.cat([jacobian, plane / footprint])
+                weight = torch.cat([weight, torch.ones(int(near.sum()), dtype=x.dtype)])
+            normal_matrix = jacobian.T @ (weight[:, None] * jacobian)
+            damped = normal_matrix + _PHOTOMETRIC_DAMPING * torch.diag(torch.diagonal(normal_matrix))
+            gradient = (jacobian.T @ (weight * residual))[:, None]
+            step = -torch.linalg.lstsq(damped, gradient).solution[:, 0]  # least squares: no step where no texture
+            w, angle = step[:3], float(step[:3].norm())
+            turn = axis_angle_rotation(w / angle, angle) if angle > 1e-12 else eye
+            rotation, shift = turn @ rotation, (shift - centre) @ turn.T + centre + step[3:]
+    return rotation, shift
+
+
+def look_agreement(
+    x: Tensor, rotation: Tensor, shift: Tensor, frame0: Frame, frame1: Frame, tolerance: float, sigma: float = 1.0,
+) -> float:
+    """How alike a body's surface points ``x`` [N, 3] (world, lifted from ``frame0``) look in ``frame0`` and, carried
+    by (``rotation``, ``shift``), in ``frame1``: the zero-mean normalised cross-correlation of their colours in both
+    images blurred by ``sigma`` px, over the points both frames see (within ``tolerance``, world units), times the
+    share of ``x`` those are (a wrong motion that leaves few of them in view can match by chance); at most 1, for a
+    right motion of a body whose look does not change and which stays in view; NaN when fewer than
+    ``_MIN_LOOK_POINTS`` are seen. Unlike the photometric fit's cost it is blind to a change of brightness and
+    contrast, so it can judge that fit."""
+    y = x @ rotation.T + shift
+    both = _seen(x, frame0, tolerance) & _seen(y, frame1, tolerance)
+    if int(both.sum()) < _MIN_LOOK_POINTS:
+        return math.nan
+    looks = []
+    for frame, points in ((frame0, x[both]), (frame1, y[both])):
+        colours = sample_bilinear(blurred(frame.image.double(), sigma), frame.camera.project_points(points)[0])[0]
+        looks.append(colours - colours.mean(0))
+    correlation = float((looks[0] * looks[1]).sum() / (looks[0].norm() * looks[1].norm()).clamp_min(1e-12))
+    return correlation * float(both.double().mean())
+
+
 def _constant_velocity(x: Tensor, rotation: Tensor, shift: Tensor, s: float) -> tuple[Tensor, Tensor]:
     """The motion (R', t') that carries ``x`` by s times the motion (R, t) about the points' centroid: s intervals at
     the same velocities (s times the turn about the moving centroid, s times its drift)."""
@@ -370,14 +518,17 @@ def _surface_owners(
 
 def _best_motion(
     x: Tensor, starts: list[tuple[Tensor, Tensor]], a: Tensor, b: Tensor, surface: tuple[Tensor, Tensor], frame: Frame,
-    reach: float, inlier: float, min_pairs: int,
+    reach: float, inlier: float, min_pairs: int, look: Look | None = None,
 ) -> tuple[tuple[Tensor, Tensor] | None, float]:
     """Of the motions refined (:func:`refine_motion`) from each of ``starts`` and fitted to at least ``_MIN_INLIERS``
     flow pairs or ``min_pairs`` surface points, the one most flow pairs agree with among those that leave at most
     ``_SEEN_THROUGH_MARGIN`` more of the body's points ``x`` seen through in ``frame`` than the best
     (:func:`seen_through`): the surface rules out motions it contradicts, the flow chooses among those it allows
-    (a turn in the image plane, a slide along a face, leave the surface where it was). Returns (motion or None, its
-    share seen through)."""
+    (a turn in the image plane, a slide along a face, leave the surface where it was). With a ``look``, the chosen
+    motion is refined by the images too (:class:`Look`); where no motion the surface allows has ``_MIN_INLIERS`` flow
+    pairs (the flow failed: a fast motion), each fitted motion that leaves no more than ``max_seen_through`` seen
+    through is, and the one the body looks most alike under is chosen (the surface alone picked wrong motions there).
+    Returns (motion or None, its share seen through)."""
     fits = []
     for rotation, shift in starts:
         rotation, shift, n_flow, n_surface = refine_motion(x, rotation, shift, a, b, surface, frame, reach, inlier)
@@ -386,8 +537,42 @@ def _best_motion(
     if not fits:
         return None, math.inf
     lowest = min(f[0] for f in fits)
-    through, _, motion = max((f for f in fits if f[0] <= lowest + _SEEN_THROUGH_MARGIN), key=lambda f: (f[1], -f[0]))
-    return motion, through
+    allowed = [f for f in fits if f[0] <= lowest + _SEEN_THROUGH_MARGIN]
+    through, n_flow, motion = max(allowed, key=lambda f: (f[1], -f[0]))
+    if look is None:
+        return motion, through
+    if n_flow >= _MIN_INLIERS:
+        return look.refined(motion, through)[:2]
+    looked = [look.refined(m, t) for t, _, m in fits if t <= max(through, look.config.max_seen_through)]
+    return max(looked, key=lambda f: f[2] if not math.isnan(f[2]) else -math.inf)[:2]
+
+
+@dataclass
+class Look:
+    """What refines one body's motion over one interval by its look (:func:`photometric_refine`)."""
+
+    x: Tensor  # [N, 3] the body's tracked points at frame t
+    shown: Tensor  # [M, 3] the surface frame t shows of it (its depth lifted on the motion mask)
+    pair: FlowPair
+    surface: tuple[Tensor, Tensor]  # frame t+1's moving surface near the body: points and normals
+    inlier: float  # world units
+    footprint: float  # world units a pixel spans at the moving surface's median depth
+    config: RigidTrackConfig
+
+    def refined(self, motion: tuple[Tensor, Tensor], through: float) -> tuple[tuple[Tensor, Tensor], float, float]:
+        """``motion`` refined by the body's look, or kept as it is when the refined one leaves more than
+        ``_SEEN_THROUGH_MARGIN`` more of the body's points seen through in frame t+1 than ``through`` (``motion``'s
+        own share), or looks more than ``config.max_look_drop`` less alike (:func:`look_agreement`). Returns (the
+        motion, its share seen through, how alike the body looks under it)."""
+        frame0, frame1, tolerance = self.pair.frame0, self.pair.frame1, 3 * self.inlier
+        before = look_agreement(self.shown, *motion, frame0, frame1, tolerance)
+        rotation, shift = photometric_refine(self.shown, *motion, frame0, frame1, self.surface, tolerance,
+                                             self.footprint, self.config.high_pass)
+        after = look_agreement(self.shown, rotation, shift, frame0, frame1, tolerance)
+        moved_through = seen_through(self.x @ rotation.T + shift, frame1, self.inlier)
+        if moved_through > through + _SEEN_THROUGH_MARGIN or not after >= before - self.config.max_look_drop:
+            return motion, through, before
+        return (rotation, shift), moved_through, after
 
 
 def _later_surfaces(
@@ -471,6 +656,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
     last: dict[int, tuple[Tensor, Tensor, float]] = {}  # each body's last motion and its interval's length
     positions, known, found = [x], [alive[body]], []
     surfaces = [first]  # each frame's moving surface (the first's unused by the later-surface points)
+    previous = moving_surface(f0)[0]  # frame k's moving surface, each body's part of it fitted photometrically
     for k in range(len(cache)):
         pair = cache.pair(k)
         a, b = lifted_pairs(pair)
@@ -483,6 +669,10 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
         continued = {bi: _constant_velocity(x[body == bi], rotation, shift, pair.dt / dt_last)  # the last velocity
                      for bi, (rotation, shift, dt_last) in last.items() if alive[bi]}
         claimed = _surface_owners(x, body, alive, continued, surface[0])
+        shown = torch.full((len(previous),), -1)  # the body frame k shows at each point of its moving surface
+        if len(previous):
+            distance_to, nearest_to = _nearest(previous, x)
+            shown = torch.where(distance_to < 2 * link, body[nearest_to], shown)
         moved = x.clone()
         found_k = torch.zeros(n_bodies, dtype=torch.bool)
         for bi in range(n_bodies):
@@ -495,8 +685,9 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
                 starts.append(continued[bi])
             starts.append(rest)  # ... and rest
             own_surface = (surface[0][claimed == bi], surface[1][claimed == bi])
+            look = Look(x[rows], previous[shown == bi], pair, own_surface, inlier, footprint, config)
             motion, through = _best_motion(x[rows], starts, a[mine], b[mine], own_surface, pair.frame1, reach, inlier,
-                                           config.min_pairs)
+                                           config.min_pairs, look if config.photometric else None)
             if motion is not None and through <= config.max_seen_through:
                 gaps[bi], last[bi], found_k[bi] = 0, (*motion, pair.dt), True
                 moved[rows] = x[rows] @ motion[0].T + motion[1]
@@ -508,7 +699,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
                 moved[rows] = x[rows] @ turn.T + drift
             else:
                 alive[bi] = False
-        x = moved
+        x, previous = moved, surface[0]
         positions.append(x)
         known.append(alive[body])
         found.append(found_k)
