@@ -32,7 +32,7 @@ and motions chain without limit. So:
 
 Against the true motion (``pidg bench rigid-tracks``; docs/motion.md, "Rigid-body tracks that hold", "Tracks fitted
 point to plane" and "Tracks fitted to the images"): the rigid scene's tracks move 0.13-0.17 of the true moves off in
-three of five seeds and 0.32-0.44 in two, where a body was lost in a fast phase (0.25-0.29 without the look; 0.30-0.36
+three of five seeds and 0.32-0.44 in two, where a body was lost in a fast phase (0.25-0.29 without the look; 0.27-0.36
 with a Kabsch fit), the kinematic head's 0.004 through all 44 intervals (with the flow alone lost at interval 16).
 
 Positions are world units, times the dataset's [0, 1]; everything runs on the CPU in float64.
@@ -98,8 +98,8 @@ class RigidTrackConfig:
     does not turn with a body, varies slowly across it; its texture does not."""
     max_look_drop: float = 0.05
     """A photometric refinement is kept only if the body looks at most this much less alike in the two frames
-    (:func:`look_agreement`, a correlation in [-1, 1]) than with the motion it started from: a fit that slid into a
-    wrong minimum shows there."""
+    (:func:`look_agreement`: a correlation times the share of the body still seen, at most 1) than with the motion
+    it started from: a fit that slid into a wrong minimum shows there."""
 
 
 @dataclass
