@@ -312,7 +312,8 @@ def photometric_refine(
     :func:`moving_surface`) in the same solve, one footprint (world units a pixel spans) weighing as
     ``_PHOTOMETRIC_NOISE`` of colour, so the look cannot take the body off the surface the depth shows. Why: the
     optical flow's pairs fall short of small, fast-turning bodies' motion (12 % on the generated rigid scene), while
-    their texture in the images moves with them (docs/motion.md, "Tracks fitted to the images")."""
+    their texture in the images moves with them (docs/motion.md, "Tracks fitted to the images"). Both frames need
+    depth maps and motion masks (:func:`track_rigid_bodies` checks)."""
     uv0, _ = frame0.camera.project_points(x)
     clear = _seen(x, frame0, tolerance) & sample_mask(frame0.mask, uv0)  # not mixed with the background by the lookup
     x, uv0 = x[clear], uv0[clear]
