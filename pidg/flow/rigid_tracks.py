@@ -671,7 +671,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
                      for bi, (rotation, shift, dt_last) in last.items() if alive[bi]}
         claimed = _surface_owners(x, body, alive, continued, surface[0])
         shown = torch.full((len(previous),), -1)  # the body frame k shows at each point of its moving surface
-        if len(previous):
+        if config.photometric and len(previous):
             distance_to, nearest_to = _nearest(previous, x)
             shown = torch.where(distance_to < 2 * link, body[nearest_to], shown)
         moved = x.clone()
