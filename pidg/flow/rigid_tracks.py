@@ -53,6 +53,7 @@ from pidg.flow.preprocess import FlowCache, FlowPair
 _MIN_INLIERS = 6  # a motion fitted to fewer pairs than this is not trusted
 _SEEN_THROUGH_MARGIN = 0.05  # motions leaving up to this share more of a body seen through than the best are equals
 _MIN_LOOK_POINTS = 20  # fewest seen surface points a photometric fit or a look comparison is made on
+_LOOK_BLUR = 1.0  # px: the blur of the images the look is compared on (:func:`look_agreement`)
 _PHOTOMETRIC_BLURS = (2.0, 1.0, 0.0)  # px: the photometric fit coarse to fine (a wider basin first, then the detail)
 _PHOTOMETRIC_STEPS = 4  # Gauss-Newton steps per blur
 _PHOTOMETRIC_HUBER = 0.05  # colour residuals (image units) beyond this count linearly: occlusions, highlights
@@ -280,6 +281,30 @@ def _seen(points: Tensor, frame: Frame, tolerance: float) -> Tensor:
     return inside & (measured > 0) & ((measured - z).abs() < tolerance)
 
 
+@dataclass(frozen=True)
+class PairImages:
+    """A frame pair's images as the look reads them (:func:`pair_images`): made once per interval and read by every
+    body and candidate motion (blurring both images anew for each of them made the tracker 1.3x slower)."""
+
+    levels: tuple[tuple[Tensor, Tensor], ...]  # per ``_PHOTOMETRIC_BLURS``: frame t's and t+1's [H, W, 3]
+    plain: tuple[Tensor, Tensor]  # both images blurred by ``_LOOK_BLUR`` px
+
+
+def pair_images(frame0: Frame, frame1: Frame, high_pass: float) -> PairImages:
+    """The two frames' images (float64, [0, 1]) as :func:`photometric_refine` fits on them, coarse to fine: each less
+    its blur of ``high_pass`` px within its motion mask (shading does not turn with a body; 0: none), then blurred
+    within the mask by each of ``_PHOTOMETRIC_BLURS``; and as :func:`look_agreement` compares them: blurred by
+    ``_LOOK_BLUR`` px. Blurs within the mask keep a moving body's colours from the still background's."""
+    images = [frame.image.double() for frame in (frame0, frame1)]
+    masks = [frame.mask for frame in (frame0, frame1)]
+    passed = images
+    if high_pass > 0:
+        passed = [(image - masked_blur(image, mask, high_pass)) * mask[..., None] for image, mask in zip(images, masks)]
+    levels = tuple((masked_blur(passed[0], masks[0], sigma), masked_blur(passed[1], masks[1], sigma))
+                   for sigma in _PHOTOMETRIC_BLURS)
+    return PairImages(levels, (blurred(images[0], _LOOK_BLUR), blurred(images[1], _LOOK_BLUR)))
+
+
 def photometric_rows(
     y: Tensor, colours: Tensor, image: Tensor, frame: Frame, centre: Tensor,
 ) -> tuple[Tensor, Tensor]:
@@ -300,14 +325,14 @@ def photometric_rows(
 
 
 def photometric_refine(
-    x: Tensor, rotation: Tensor, shift: Tensor, frame0: Frame, frame1: Frame, surface: tuple[Tensor, Tensor],
-    tolerance: float, footprint: float, high_pass: float,
+    x: Tensor, rotation: Tensor, shift: Tensor, frame0: Frame, frame1: Frame, images: PairImages,
+    surface: tuple[Tensor, Tensor], tolerance: float, footprint: float,
 ) -> tuple[Tensor, Tensor]:
     """The motion (R, t) of a body, refined from (``rotation``, ``shift``), under which its surface points ``x``
     [N, 3] (world, lifted from ``frame0``'s depth) look in ``frame1`` as they look in ``frame0``: a direct,
     photometric fit (Gauss-Newton with Levenberg-Marquardt damping, Huber-weighted colour residuals), coarse to fine
-    over ``_PHOTOMETRIC_BLURS``, on both images less their blur of ``high_pass`` px (shading does not turn with a
-    body). Only the points ``frame1`` sees at their moved place (within ``tolerance``, world units) count. The
+    over ``images.levels`` (:func:`pair_images`: the two frames' images high-passed and blurred within their motion
+    masks). Only the points ``frame1`` sees at their moved place (within ``tolerance``, world units) count. The
     body's points also pull point to plane toward ``surface`` (frame1's moving surface near them, points and normals:
     :func:`moving_surface`) in the same solve, one footprint (world units a pixel spans) weighing as
     ``_PHOTOMETRIC_NOISE`` of colour, so the look cannot take the body off the surface the depth shows. Why: the
@@ -319,14 +344,9 @@ def photometric_refine(
     x, uv0 = x[clear], uv0[clear]
     if len(x) < _MIN_LOOK_POINTS:
         return rotation, shift
-    images = [frame.image.double() for frame in (frame0, frame1)]
-    masks = [frame.mask for frame in (frame0, frame1)]
-    if high_pass > 0:
-        images = [(image - masked_blur(image, mask, high_pass)) * mask[..., None] for image, mask in zip(images, masks)]
     eye = torch.eye(3, dtype=x.dtype)
     points, normals = surface
-    for sigma in _PHOTOMETRIC_BLURS:
-        image0, image1 = (masked_blur(image, mask, sigma) for image, mask in zip(images, masks))
+    for image0, image1 in images.levels:
         colours0 = sample_bilinear(image0, uv0)[0]
         for _ in range(_PHOTOMETRIC_STEPS):
             y = x @ rotation.T + shift
@@ -357,22 +377,22 @@ def photometric_refine(
 
 
 def look_agreement(
-    x: Tensor, rotation: Tensor, shift: Tensor, frame0: Frame, frame1: Frame, tolerance: float, sigma: float = 1.0,
+    x: Tensor, rotation: Tensor, shift: Tensor, frame0: Frame, frame1: Frame, images: PairImages, tolerance: float,
 ) -> float:
-    """How alike a body's surface points ``x`` [N, 3] (world, lifted from ``frame0``) look in ``frame0`` and, carried
-    by (``rotation``, ``shift``), in ``frame1``: the zero-mean normalised cross-correlation of their colours in both
-    images blurred by ``sigma`` px, over the points both frames see (within ``tolerance``, world units), times the
-    share of ``x`` those are (a wrong motion that leaves few of them in view can match by chance); at most 1, for a
-    right motion of a body whose look does not change and which stays in view; NaN when fewer than
-    ``_MIN_LOOK_POINTS`` are seen. Unlike the photometric fit's cost it is blind to a change of brightness and
-    contrast, so it can judge that fit."""
+    """How alike a body's surface points ``x`` [N, 3] (world, lifted from ``frame0``) look in ``frame0`` and,
+    carried by (``rotation``, ``shift``), in ``frame1``: the zero-mean normalised cross-correlation of their colours
+    in both images blurred by ``_LOOK_BLUR`` px (``images.plain``: :func:`pair_images`), over the points both frames
+    see (within ``tolerance``, world units), times the share of ``x`` those are (a wrong motion that leaves few of
+    them in view can match by chance); at most 1, for a right motion of a body whose look does not change and which
+    stays in view; NaN when fewer than ``_MIN_LOOK_POINTS`` are seen. Unlike the photometric fit's cost it is blind
+    to a change of brightness and contrast, so it can judge that fit."""
     y = x @ rotation.T + shift
     both = _seen(x, frame0, tolerance) & _seen(y, frame1, tolerance)
     if int(both.sum()) < _MIN_LOOK_POINTS:
         return math.nan
     looks = []
-    for frame, points in ((frame0, x[both]), (frame1, y[both])):
-        colours = sample_bilinear(blurred(frame.image.double(), sigma), frame.camera.project_points(points)[0])[0]
+    for frame, image, points in ((frame0, images.plain[0], x[both]), (frame1, images.plain[1], y[both])):
+        colours = sample_bilinear(image, frame.camera.project_points(points)[0])[0]
         looks.append(colours - colours.mean(0))
     correlation = float((looks[0] * looks[1]).sum() / (looks[0].norm() * looks[1].norm()).clamp_min(1e-12))
     return correlation * float(both.double().mean())
@@ -556,6 +576,7 @@ class Look:
     shown: Tensor  # [M, 3] the surface frame t shows of it (its depth lifted on the motion mask)
     pair: FlowPair
     surface: tuple[Tensor, Tensor]  # frame t+1's moving surface near the body: points and normals
+    images: PairImages  # the pair's images, prepared once per interval (:func:`pair_images`)
     inlier: float  # world units
     footprint: float  # world units a pixel spans at the moving surface's median depth
     config: RigidTrackConfig
@@ -566,10 +587,10 @@ class Look:
         own share), or looks more than ``config.max_look_drop`` less alike (:func:`look_agreement`). Returns (the
         motion, its share seen through, how alike the body looks under it)."""
         frame0, frame1, tolerance = self.pair.frame0, self.pair.frame1, 3 * self.inlier
-        before = look_agreement(self.shown, *motion, frame0, frame1, tolerance)
-        rotation, shift = photometric_refine(self.shown, *motion, frame0, frame1, self.surface, tolerance,
-                                             self.footprint, self.config.high_pass)
-        after = look_agreement(self.shown, rotation, shift, frame0, frame1, tolerance)
+        before = look_agreement(self.shown, *motion, frame0, frame1, self.images, tolerance)
+        rotation, shift = photometric_refine(self.shown, *motion, frame0, frame1, self.images, self.surface, tolerance,
+                                             self.footprint)
+        after = look_agreement(self.shown, rotation, shift, frame0, frame1, self.images, tolerance)
         moved_through = seen_through(self.x @ rotation.T + shift, frame1, self.inlier)
         if moved_through > through + _SEEN_THROUGH_MARGIN or not after >= before - self.config.max_look_drop:
             return motion, through, before
@@ -674,6 +695,7 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
         if config.photometric and len(previous):
             distance_to, nearest_to = _nearest(previous, x)
             shown = torch.where(distance_to < 2 * link, body[nearest_to], shown)
+        images = pair_images(pair.frame0, pair.frame1, config.high_pass) if config.photometric else None
         moved = x.clone()
         found_k = torch.zeros(n_bodies, dtype=torch.bool)
         for bi in range(n_bodies):
@@ -686,9 +708,10 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
                 starts.append(continued[bi])
             starts.append(rest)  # ... and rest
             own_surface = (surface[0][claimed == bi], surface[1][claimed == bi])
-            look = Look(x[rows], previous[shown == bi], pair, own_surface, inlier, footprint, config)
+            look = None if images is None else Look(x[rows], previous[shown == bi], pair, own_surface, images, inlier,
+                                                    footprint, config)
             motion, through = _best_motion(x[rows], starts, a[mine], b[mine], own_surface, pair.frame1, reach, inlier,
-                                           config.min_pairs, look if config.photometric else None)
+                                           config.min_pairs, look)
             if motion is not None and through <= config.max_seen_through:
                 gaps[bi], last[bi], found_k[bi] = 0, (*motion, pair.dt), True
                 moved[rows] = x[rows] @ motion[0].T + motion[1]

@@ -21,6 +21,7 @@ from pidg.flow.rigid_tracks import (
     look_agreement,
     masked_blur,
     moving_surface,
+    pair_images,
     photometric_refine,
     photometric_rows,
     point_plane_fit,
@@ -418,22 +419,24 @@ def test_photometric_refine_finds_a_textured_face_s_turn_and_slide(high_pass: fl
     off = (rotation_z(0.03) @ rotation, shift + torch.tensor([0.05, -0.04, 0.0], dtype=torch.float64))
     assert float((x @ off[0].T + off[1] - truth_y).norm(dim=1).mean()) > 0.08
     for start in (off, (rotation, shift)):
-        refined = photometric_refine(x, *start, frame0, frame1, surface, 0.3, DEPTH / FOCAL, high_pass)
+        refined = photometric_refine(x, *start, frame0, frame1, pair_images(frame0, frame1, high_pass), surface, 0.3,
+                                     DEPTH / FOCAL)
         error = (x @ refined[0].T + refined[1] - truth_y).norm(dim=1)
         assert float(error.mean()) < 0.006 and float(error.max()) < 0.015
 
 
 def test_look_agreement_prefers_the_true_motion_and_ignores_brightness_and_contrast():
     frame0, frame1, x, rotation, shift, _ = look_case()
-    right = look_agreement(x, rotation, shift, frame0, frame1, 0.3)
+    images = pair_images(frame0, frame1, 3.0)
+    right = look_agreement(x, rotation, shift, frame0, frame1, images, 0.3)
     wrong = look_agreement(x, rotation_z(0.05) @ rotation, shift + torch.tensor([0.1, 0.0, 0.0], dtype=torch.float64),
-                           frame0, frame1, 0.3)
+                           frame0, frame1, images, 0.3)
     assert right > 0.9 and wrong < right - 0.2
     dimmer = Frame(frame1.camera, frame1.time, (frame1.image * 0.7 + 0.2).mul(255).round().to(torch.uint8), frame1.mask,
                    frame1.name, depth=frame1.depth)
-    assert abs(look_agreement(x, rotation, shift, frame0, dimmer, 0.3) - right) < 0.01
+    assert abs(look_agreement(x, rotation, shift, frame0, dimmer, pair_images(frame0, dimmer, 3.0), 0.3) - right) < 0.01
     away = torch.tensor([0.0, 0.0, 50.0], dtype=torch.float64)  # carried out of view: nothing seen to compare
-    assert math.isnan(look_agreement(x, rotation, shift + away, frame0, frame1, 0.3))
+    assert math.isnan(look_agreement(x, rotation, shift + away, frame0, frame1, images, 0.3))
 
 
 def test_a_flow_that_falls_short_is_made_up_by_the_look():
