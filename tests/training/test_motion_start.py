@@ -47,7 +47,7 @@ def moved(trainer: Trainer, t: float) -> float:
     means = trainer.model.gaussians.params["means"].detach()
     quats, scales = identity_rows(len(means), means.device)
     with torch.no_grad():
-        return float((field.deform(means, quats, scales, torch.full((len(means),), t)).means - means).norm(dim=1).mean())
+        return float((field.deform(means, quats, scales, torch.full((len(means),), t, device=means.device)).means - means).norm(dim=1).mean())
 
 
 def test_a_new_run_starts_from_the_tracks_and_a_resumed_one_does_not_refit(dataset, tmp_path, caplog):
@@ -96,17 +96,18 @@ def tracks_term(trainer: Trainer) -> TrackHoldLoss:
 class _Render:
     """A render stand-in: the tracks term reads only its image's dtype and device."""
 
-    rgb = torch.zeros(2, 2, 3)
+    def __init__(self, device: torch.device):
+        self.rgb = torch.zeros(2, 2, 3, device=device)
 
 
 def step_inputs(trainer: Trainer, frame, deforming: bool = True) -> tuple[StepInputs, _Render]:
-    """The term's inputs at ``frame``, and the render stand-in."""
+    """The term's inputs at ``frame``, and the render stand-in (on the model's device: CUDA where there is one)."""
     state = trainer.model.at(frame.time)
-    return StepInputs(0, frame, trainer.model, state, deforming), _Render()
+    return StepInputs(0, frame, trainer.model, state, deforming), _Render(trainer.model.device)
 
 
 def carried(trainer: Trainer, targets: TrackTargets, k: int) -> torch.Tensor:
-    quats, scales = identity_rows(len(targets.start))
+    quats, scales = identity_rows(len(targets.start), targets.start.device)
     with torch.no_grad():
         return trainer.model.deformation.deform(targets.start, quats, scales, targets.times[k].expand(len(targets.start))).means
 
@@ -120,7 +121,7 @@ def test_the_tracks_term_is_the_mean_absolute_position_error_at_the_frames_time(
     term = tracks_term(trainer)
     targets = term.targets
     assert targets is not None and targets.positions.shape == (len(targets.times), len(targets.start), 3)
-    assert torch.allclose(targets.times, torch.tensor([f.time for f in scene.train]))
+    assert torch.allclose(targets.times, torch.tensor([f.time for f in scene.train], device=targets.times.device))
     monkeypatch.setattr(losses, "TRACK_POINTS_PER_STEP", len(targets.start))  # every point: a closed form
     k = 3
     frame = scene.train[k]
@@ -170,7 +171,8 @@ def test_the_tracks_term_holds_the_deformation_and_its_tracks_survive_a_resume(d
     trainer.train()
     resumed = Trainer.from_checkpoint(tmp_path / "run" / "checkpoint.pt", scene)
     kept = tracks_term(resumed)
-    assert kept.targets is not None and all(torch.equal(getattr(kept.targets, f), getattr(term.targets, f))
+    # a checkpoint's targets load on the CPU and move to the run's device at the first step that reads them
+    assert kept.targets is not None and all(torch.equal(getattr(kept.targets, f).cpu(), getattr(term.targets, f).cpu())
                                             for f in ("start", "positions", "times", "known"))
     assert torch.equal(kept.generator.get_state(), term.generator.get_state())
 
