@@ -16,6 +16,10 @@ End-point error (EPE) = mean |flow - flow_gt| in pixels over the *scored pixels*
 the ground truth (finite flow) and covered by the model (alpha > 0.5), pooled over the frames. The zero-motion EPE
 (= mean |flow_gt| there) gives it a scale. Ground-truth flows are resized to the run's images
 (:func:`pidg.data.motion_gt.resize_flow`). Frames whose t' lies after the recording (t' > 1) are skipped.
+*Per object*: where the frames have depth maps and the truth has triangles, each scored pixel is labelled with the
+ground-truth object it shows (:func:`pixel_objects`: its depth lifted to 3D, the object of the nearest point on the
+true triangles at the frame's time, none beyond the matching radius below), and the EPEs are also pooled per object:
+which bodies carry the error (a fast one's share of the error is larger than its share of the pixels).
 
 **3D velocity.** At each frame time that has a ground-truth vertex sample: every vertex is matched to the nearest
 Gaussian deformed to t, if one lies within ``radius`` (world units; default 2 % of the diagonal of the box around
@@ -93,7 +97,9 @@ from pidg.data.motion_gt import MotionGroundTruth, VertexMotion, composited_flow
 from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.charts import svg_chart
 from pidg.flow import FlowCache, FlowConfig, FlowTarget, VelocityIntegration, interval_velocity, model_flow_target
+from pidg.flow.decomposition import unproject_points
 from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
+from pidg.flow.optical_flow import pixel_centers
 from pidg.flow.rigid_tracks import rigid_fit, rotation_angle
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -134,6 +140,9 @@ class FlowScores:
     zero_motion_epe: float | None  # mean |flow_gt| on the scored pixels
     skipped: list[str] = field(default_factory=list)  # frames whose t + frame_interval lies after the recording
     velocity_integration: VelocityIntegration = "euler"  # how the velocity flow carried the particles over t' - t
+    #: per ground-truth object (:func:`pixel_objects`; "(none)": pixels no object's surface lies near): its scored
+    #: pixels and their motion / velocity / zero-motion EPE (px); empty without depth maps or triangles
+    per_object: dict[str, dict[str, float | int | None]] = field(default_factory=dict)
 
 
 @dataclass
@@ -280,7 +289,8 @@ class MotionEvaluation:
         rule = "" if f.velocity_integration == "euler" else f" ({f.velocity_integration} rule)"
         return (
             f"motion vs ground truth ({self.split}, {f.frames} frames, {f.pixels} px): motion-flow EPE {_px(f.motion_flow_epe)}, "
-            f"velocity-flow EPE {_px(f.velocity_flow_epe)}{rule}, zero motion {_px(f.zero_motion_epe)}; 3D velocity "
+            f"velocity-flow EPE {_px(f.velocity_flow_epe)}{rule}, zero motion {_px(f.zero_motion_epe)}"
+            + (f" ({_objects_text(f)})" if len(f.per_object) > 1 else "") + "; 3D velocity "
             f"(coverage {_pct(v.coverage)} within {v.radius:.3g} world units): relative error deformation {_num(v.deformation_rel)}, "
             f"field v {_num(v.field_rel)}, zero {_num(v.zero_rel)}; along / across the camera rays (world units per "
             f"unit of dataset time): deformation "
@@ -332,6 +342,13 @@ UNITS = {
     "velocity": "world units per unit of dataset time (x frame_interval: *_per_frame, world units per frame interval)",
     "radius": "world units",
 }
+
+
+def _objects_text(f: FlowScores) -> str:
+    key = "velocity_flow_epe" if f.velocity_flow_epe is not None else "motion_flow_epe"
+    parts = [f"{name} {_px(o[key])} on {_pct(o['pixels'] / f.pixels if f.pixels else None)}"
+             for name, o in f.per_object.items()]
+    return f"by object, {key.split('_')[0]} flow on its share of the pixels: " + ", ".join(parts)
 
 
 def _tracking_text(t: TrackingScores) -> str:
@@ -564,6 +581,71 @@ def _frame_flows(
     return FrameFlows(frame, flow_gt, flows, dyn & torch.isfinite(flow_gt).all(-1) & (flows.alpha > MODEL_MIN_ALPHA))
 
 
+MESH_SAMPLES = 50_000
+"""About this many points are sampled on the ground-truth triangles to label a frame's pixels by object."""
+NO_OBJECT = "(none)"
+
+
+def surface_samples(truth: MotionGroundTruth, t: float) -> tuple[Tensor, Tensor] | None:
+    """Points [S, 3] (world units) on the ground-truth triangles at dataset time ``t``, a barycentric grid on each
+    (about :data:`MESH_SAMPLES` in all), and the index in ``truth.objects`` of each one's object [S]; None without
+    triangles or a vertex sample at ``t``."""
+    vertices = truth.vertices
+    if not len(vertices.faces) or not _has_sample(truth, t):
+        return None
+    faces = torch.as_tensor(vertices.faces, dtype=torch.long)
+    corners = torch.as_tensor(vertices.positions[vertices.index_of(t, _TIME_TOL)], dtype=torch.float64)[faces]
+    steps = max(1, int(math.sqrt(2 * MESH_SAMPLES / len(faces))) - 1)  # (steps + 1)(steps + 2) / 2 per triangle
+    i, j = torch.meshgrid(torch.arange(steps + 1), torch.arange(steps + 1), indexing="ij")
+    a, b = (i[i + j <= steps] / steps).double(), (j[i + j <= steps] / steps).double()
+    weights = torch.stack([1 - a - b, a, b], dim=1)  # [Q, 3] barycentric
+    points = torch.einsum("qk,fkd->fqd", weights, corners).reshape(-1, 3)
+    return points, truth.vertex_objects()[faces[:, 0]].repeat_interleave(len(weights))
+
+
+def pixel_objects(frame: Frame, truth: MotionGroundTruth, pixels: Tensor, radius: float) -> Tensor | None:
+    """The ground-truth object (index in ``truth.objects``; -1 where no object's surface lies within ``radius`` world
+    units) of each of ``frame``'s ``pixels`` [H, W] (bool) in row-major order [K]: the pixel's depth lifted to 3D
+    (:func:`pidg.flow.decomposition.unproject_points`), labelled by the nearest of :func:`surface_samples`. None
+    where the frame has no depth map, or the truth no triangles or no vertex sample at the frame's time."""
+    samples = None if frame.depth is None else surface_samples(truth, frame.time)
+    if samples is None:
+        return None
+    points, objects = samples
+    mask = pixels.cpu()
+    centres = pixel_centers(mask.shape[0], mask.shape[1], torch.float64)[mask]
+    lifted = unproject_points(centres, frame.depth.cpu().double()[mask], frame.camera.to("cpu"))
+    nearest, distance = nearest_gaussians(lifted, points)
+    return torch.where(distance <= radius, objects[nearest], torch.full_like(nearest, -1))
+
+
+def _object_flow_sums(flows: FrameFlows, labels: Tensor) -> dict[int, dict[str, float | None]]:
+    """Per object label of the scored pixels (:func:`pixel_objects`): their number ("pixels") and the sums of
+    |flow - flow_gt| per flow as :func:`_frame_flow_sums` (None: the model has no such flow)."""
+    flow_gt, mask, m = flows.truth[flows.scored].double().cpu(), flows.scored, flows.model
+    errors = {key: None if flow is None else (flow[mask].double().cpu() - flow_gt).norm(dim=-1)
+              for key, flow in (("motion", m.motion), ("velocity", m.velocity))}
+    errors["zero"] = flow_gt.norm(dim=-1)
+    out = {}
+    for label in labels.unique().tolist():
+        rows = labels == label
+        out[label] = {"pixels": float(rows.sum()),
+                      **{key: None if e is None else float(e[rows].sum()) for key, e in errors.items()}}
+    return out
+
+
+def _object_means(sums: dict[int, dict[str, float | None]], names: list[str]) -> dict[str, dict[str, float | int | None]]:
+    """Per object name (label -1: :data:`NO_OBJECT`, last): its pixels and mean EPEs (px) from
+    :func:`_object_flow_sums`' sums."""
+    out = {}
+    for label, s in sorted(sums.items(), key=lambda item: (item[0] < 0, item[0])):
+        n = s["pixels"]
+        out[names[label] if label >= 0 else NO_OBJECT] = {
+            "pixels": int(n), **{FLOW_KEYS[key]: None if s[key] is None or not n else s[key] / n
+                                 for key in ("motion", "velocity", "zero")}}
+    return out
+
+
 def _frame_flow_sums(flows: FrameFlows) -> tuple[dict[str, float | None], int]:
     """Sums of |flow - flow_gt| over one frame's scored pixels per flow (None: the model has no such flow), and
     their number."""
@@ -609,6 +691,8 @@ def evaluate_motion(
     }
     matches: dict[float, tuple[Tensor, Tensor, Tensor]] = {}  # sample time -> matched vertices, their Gaussians, seen
     known = [x for x in train_times or () if _has_sample(truth, x)]  # the training times with a vertex sample
+    object_names = [o.name for o in truth.objects]
+    object_sums: dict[int, dict[str, float | None]] = {}
     for frame in frames:
         record: dict[str, Any] = {"view": frame.name, "time": frame.time}
         gt = truth.frame_flow(frame.name)
@@ -621,6 +705,14 @@ def evaluate_motion(
             frame_sums, n = _frame_flow_sums(flows)
             if on_frame is not None:
                 on_frame(flows)
+            labels = pixel_objects(frame, truth, flows.scored, radius)
+            if labels is not None:
+                frame_objects = _object_flow_sums(flows, labels)
+                record["objects"] = _object_means(frame_objects, object_names)
+                for o, v in frame_objects.items():
+                    total = object_sums.setdefault(o, dict.fromkeys(v, 0.0))
+                    for key, value in v.items():
+                        total[key] = None if value is None or total[key] is None else total[key] + value
             for key, total in frame_sums.items():
                 sums[key] += total or 0.0
                 record[FLOW_KEYS[key]] = total / n if total is not None and n else None
@@ -635,7 +727,7 @@ def evaluate_motion(
         return sums[key] / pixels if pixels and (key != "velocity" or model.material_field is not None) else None
 
     flow_scores = FlowScores(scored, pixels, average("motion"), average("velocity"), average("gaussian"), average("zero"), skipped,
-                             velocity_integration)
+                             velocity_integration, _object_means(object_sums, object_names))
     velocity = _velocity_scores(gathered, len(matches), radius, h, speed_floor, truth.frame_interval)
     matches = dict(sorted(matches.items()))
     followed = _follow_matches(model, truth, matches)

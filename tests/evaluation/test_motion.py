@@ -287,6 +287,55 @@ def test_a_wrong_field_velocity_shows_in_the_velocity_errors_only(tmp_path):
     assert bare.flow.velocity_flow_epe is None and bare.velocity.field_rel is None and bare.flow.motion_flow_epe is not None
 
 
+def two_faces_truth(root, shift=(0.3, -0.4), gap=0.1, times=(0.25, 0.5)):
+    """Two rectangles (two triangles each) on the plane of :func:`plane_model`, "left" up to ``gap`` left of the
+    line x = 0 and "right" from ``gap`` right of it, translating with VELOCITY; frames with depth maps (the plane,
+    z = Z). The truth's flow is the plane's motion, ``shift`` px more on every pixel right of the gap's middle."""
+    corners = np.array([[-1.2, -1.2], [-gap, -1.2], [-gap, 1.2], [-1.2, 1.2], [gap, -1.2], [1.2, -1.2], [1.2, 1.2], [gap, 1.2]])
+    canonical = torch.tensor(np.concatenate([corners, np.full((8, 1), Z)], axis=1), dtype=torch.float32)
+    positions = np.stack([(canonical + t * VELOCITY).numpy() for t in times]).astype(np.float32)
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]], np.int64)
+    motion = VertexMotion(np.asarray(times, np.float64), positions, np.zeros_like(positions), faces)
+    write_motion_gt(root, DT, [MotionObject("left", "rigid", 0, 4), MotionObject("right", "rigid", 4, 4)], motion)
+    frames = []
+    for i, t in enumerate(times):
+        x = (np.arange(W) + 0.5 - CAMERA.cx) / CAMERA.fx * Z  # each pixel column's x on the plane
+        flow = np.empty((H, W, 2), np.float32)
+        flow[..., 0], flow[..., 1] = EXPECTED_PX
+        flow[:, x > t * float(VELOCITY[0])] += np.asarray(shift, np.float32)
+        name = f"test/r_{i:04d}"
+        write_frame_flow(root, name, FrameFlow(flow, np.ones((H, W), bool), t, t + DT))
+        frames.append(Frame(CAMERA, t, torch.zeros(H, W, 3, dtype=torch.uint8), name=name, depth=torch.full((H, W), Z)))
+    return read_motion_gt(root), frames
+
+
+def test_flow_errors_are_also_pooled_per_object_by_the_surface_each_pixel_shows(tmp_path):
+    """Each pixel's depth lifted onto the true triangles names its object: the left face's pixels score 0 and the
+    right face's the truth's 0.5 px shift; pixels in the gap between them, farther than the matching radius from
+    both, are "(none)"; per object, the pixels add up to the scored ones and the errors to the pooled EPE."""
+    truth, frames = two_faces_truth(tmp_path)
+    result = evaluate_motion(plane_model(VELOCITY / S), frames, truth)
+    f, radius = result.flow, default_radius(truth)
+    assert radius < 0.1  # the gap's middle is farther than the radius from both faces
+    objects = f.per_object
+    assert list(objects) == ["left", "right", "(none)"]
+    assert objects["left"]["velocity_flow_epe"] == pytest.approx(0.0, abs=1e-4)
+    assert objects["right"]["velocity_flow_epe"] == pytest.approx(0.5, rel=1e-4)
+    assert objects["right"]["motion_flow_epe"] == pytest.approx(0.5, rel=1e-4)
+    assert objects["right"]["zero_motion_epe"] == pytest.approx(math.hypot(EXPECTED_PX[0] + 0.3, EXPECTED_PX[1] - 0.4), rel=1e-5)
+    assert sum(o["pixels"] for o in objects.values()) == f.pixels
+    for key in ("motion_flow_epe", "velocity_flow_epe", "zero_motion_epe"):
+        assert sum(o["pixels"] * o[key] for o in objects.values()) / f.pixels == pytest.approx(getattr(f, key), rel=1e-5)
+    # the gap is 0.2 world units wide (3 px at depth Z); the pixels within the radius of a face are that face's
+    gap_px = sum(o["pixels"] for name, o in objects.items() if name == "(none)") / len(frames) / H
+    assert 0.0 < gap_px <= (0.2 - 2 * radius) * CAMERA.fx / Z + 1
+    assert result.per_frame[0]["objects"]["right"]["pixels"] > 0
+    assert "(by object, velocity flow on its share of the pixels: left 0.000 px on" in result.summary()
+    # without depth maps there is nothing to lift: no breakdown
+    bare = [dataclasses.replace(frame, depth=None) for frame in frames]
+    assert evaluate_motion(plane_model(VELOCITY / S), bare, truth).flow.per_object == {}
+
+
 def test_the_flow_picture_shows_truth_motion_velocity_and_error_on_the_scored_pixels(tmp_path):
     from pidg.evaluation.flow_vis import flow_rgb_tensor
     from pidg.evaluation.visualize import truth_flow_comparison, truth_flow_titles
