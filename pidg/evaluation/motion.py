@@ -141,7 +141,8 @@ class FlowScores:
     skipped: list[str] = field(default_factory=list)  # frames whose t + frame_interval lies after the recording
     velocity_integration: VelocityIntegration = "euler"  # how the velocity flow carried the particles over t' - t
     #: per ground-truth object (:func:`pixel_objects`; "(none)": pixels no object's surface lies near): its scored
-    #: pixels and their motion / velocity / zero-motion EPE (px); empty without depth maps or triangles
+    #: pixels and their motion / velocity / zero-motion EPE (px), pooled over the frames with a depth map; empty
+    #: without depth maps or triangles
     per_object: dict[str, dict[str, float | int | None]] = field(default_factory=dict)
 
 
