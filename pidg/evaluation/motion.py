@@ -97,9 +97,8 @@ from pidg.data.motion_gt import MotionGroundTruth, VertexMotion, composited_flow
 from pidg.data.scene import DatasetError, Frame
 from pidg.evaluation.charts import svg_chart
 from pidg.flow import FlowCache, FlowConfig, FlowTarget, VelocityIntegration, interval_velocity, model_flow_target
-from pidg.flow.decomposition import unproject_points
+from pidg.flow.decomposition import backproject
 from pidg.flow.gaussian_flow import decode_flows, gaussian_flow_features
-from pidg.flow.optical_flow import pixel_centers
 from pidg.flow.rigid_tracks import rigid_fit, rotation_angle
 from pidg.models.deformation import DeformedGaussians
 from pidg.models.dynamic_gaussians import DynamicGaussians
@@ -607,26 +606,30 @@ def surface_samples(truth: MotionGroundTruth, t: float) -> tuple[Tensor, Tensor]
 def pixel_objects(frame: Frame, truth: MotionGroundTruth, pixels: Tensor, radius: float) -> Tensor | None:
     """The ground-truth object (index in ``truth.objects``; -1 where no object's surface lies within ``radius`` world
     units) of each of ``frame``'s ``pixels`` [H, W] (bool) in row-major order [K]: the pixel's depth lifted to 3D
-    (:func:`pidg.flow.decomposition.unproject_points`), labelled by the nearest of :func:`surface_samples`. None
+    (:func:`pidg.flow.decomposition.backproject`), labelled by the nearest of :func:`surface_samples`. None
     where the frame has no depth map, or the truth no triangles or no vertex sample at the frame's time."""
     samples = None if frame.depth is None else surface_samples(truth, frame.time)
     if samples is None:
         return None
     points, objects = samples
-    mask = pixels.cpu()
-    centres = pixel_centers(mask.shape[0], mask.shape[1], torch.float64)[mask]
-    lifted = unproject_points(centres, frame.depth.cpu().double()[mask], frame.camera.to("cpu"))
+    lifted = backproject(frame.depth.cpu().double(), frame.camera.to("cpu"))[pixels.cpu()]
     nearest, distance = nearest_gaussians(lifted, points)
     return torch.where(distance <= radius, objects[nearest], torch.full_like(nearest, -1))
 
 
-def _object_flow_sums(flows: FrameFlows, labels: Tensor) -> dict[int, dict[str, float | None]]:
-    """Per object label of the scored pixels (:func:`pixel_objects`): their number ("pixels") and the sums of
-    |flow - flow_gt| per flow as :func:`_frame_flow_sums` (None: the model has no such flow)."""
-    flow_gt, mask, m = flows.truth[flows.scored].double().cpu(), flows.scored, flows.model
-    errors = {key: None if flow is None else (flow[mask].double().cpu() - flow_gt).norm(dim=-1)
-              for key, flow in (("motion", m.motion), ("velocity", m.velocity))}
-    errors["zero"] = flow_gt.norm(dim=-1)
+def _pixel_errors(flows: FrameFlows) -> dict[str, Tensor | None]:
+    """|flow - flow_gt| (px, float64, CPU) at each of one frame's scored pixels [K] per flow (None: the model has no
+    such flow), and ``zero``: |flow_gt| there."""
+    flow_gt, mask, m = flows.truth[flows.scored], flows.scored, flows.model
+    errors = {key: None if flow is None else (flow[mask] - flow_gt).norm(dim=-1).double().cpu()
+              for key, flow in (("motion", m.motion), ("velocity", m.velocity), ("gaussian", m.gaussian))}
+    errors["zero"] = flow_gt.norm(dim=-1).double().cpu()
+    return errors
+
+
+def _object_flow_sums(errors: dict[str, Tensor | None], labels: Tensor) -> dict[int, dict[str, float | None]]:
+    """Per object label of the scored pixels (:func:`pixel_objects`): their number ("pixels") and the sums of their
+    errors (:func:`_pixel_errors`) per flow (None: the model has no such flow)."""
     out = {}
     for label in labels.unique().tolist():
         rows = labels == label
@@ -647,13 +650,10 @@ def _object_means(sums: dict[int, dict[str, float | None]], names: list[str]) ->
     return out
 
 
-def _frame_flow_sums(flows: FrameFlows) -> tuple[dict[str, float | None], int]:
-    """Sums of |flow - flow_gt| over one frame's scored pixels per flow (None: the model has no such flow), and
-    their number."""
-    flow_gt, mask, m = flows.truth, flows.scored, flows.model
-    sums = {"motion": _epe_sum(m.motion, flow_gt, mask), "velocity": _epe_sum(m.velocity, flow_gt, mask),
-            "gaussian": _epe_sum(m.gaussian, flow_gt, mask), "zero": float(flow_gt.norm(dim=-1)[mask].double().sum())}
-    return sums, int(mask.sum())
+def _frame_flow_sums(errors: dict[str, Tensor | None]) -> tuple[dict[str, float | None], int]:
+    """Sums of one frame's errors (:func:`_pixel_errors`) over its scored pixels per flow (None: the model has no
+    such flow), and their number."""
+    return {key: None if e is None else float(e.sum()) for key, e in errors.items()}, len(errors["zero"])
 
 
 @torch.no_grad()
@@ -703,12 +703,13 @@ def evaluate_motion(
             skipped.append(frame.name)
         else:
             flows = _frame_flows(model, frame, gt.flow, gt.dynamic, gt.next_time, velocity_integration)
-            frame_sums, n = _frame_flow_sums(flows)
+            errors = _pixel_errors(flows)
+            frame_sums, n = _frame_flow_sums(errors)
             if on_frame is not None:
                 on_frame(flows)
             labels = pixel_objects(frame, truth, flows.scored, radius)
             if labels is not None:
-                frame_objects = _object_flow_sums(flows, labels)
+                frame_objects = _object_flow_sums(errors, labels)
                 record["objects"] = _object_means(frame_objects, object_names)
                 for o, v in frame_objects.items():
                     total = object_sums.setdefault(o, dict.fromkeys(v, 0.0))
