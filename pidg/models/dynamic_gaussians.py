@@ -156,15 +156,20 @@ class DynamicGaussians:
         invariant = None if reuse is None else reuse.invariant
         return self.deformation(means, quats, log_scales, t, static_mask=static, regularize=regularize, invariant=invariant)
 
-    def motion_velocity(self, t: float, h: float, rows: Tensor | None = None) -> Tensor:
-        """The deformation's own velocity dx/dt [N, 3] at dataset time ``t``, in world units per unit of dataset time:
-        the central difference of the means over t +- h, one-sided where that leaves [0, 1]. ``rows`` as :meth:`at`'s.
-        The motion metrics and the particle-velocity loss both read it."""
+    def motion_velocity(self, t: float | Tensor, h: float, rows: Tensor | None = None) -> Tensor:
+        """The deformation's own velocity dx/dt [N, 3] at dataset time ``t`` (a float, or [N]: a time per row), in
+        world units per unit of dataset time: the central difference of the means over t +- h, one-sided where that
+        leaves [0, 1]. ``rows`` as :meth:`at`'s. The motion metrics and the particle-velocity loss both read it."""
         if not h > 0:
             raise ValueError(f"motion_velocity: the step h must be > 0, got {h}")
-        t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
+        if isinstance(t, Tensor):
+            t0, t1 = (t - h).clamp_min(0.0), (t + h).clamp_max(1.0)
+            span: float | Tensor = (t1 - t0)[:, None]
+        else:
+            t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
+            span = t1 - t0
         start = self.at(t0, rows=rows)
-        return (self.at(t1, rows=rows, reuse=start).means - start.means) / (t1 - t0)
+        return (self.at(t1, rows=rows, reuse=start).means - start.means) / span
 
     # ---- rendering -------------------------------------------------------------------------------------------
     def render(self, camera: Camera, t: float, features: Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
@@ -201,9 +206,10 @@ class DynamicGaussians:
         return self._field()(means, t, self.gaussians.particle_index)
 
     def velocities(self, t: float | Tensor, means: Tensor | None = None, rows: Tensor | None = None) -> Tensor:
-        """v [N, 3] in world units per physics time unit at the Gaussians' positions at time ``t`` (``means``, or
-        ``at(t)``'s); zero for static Gaussians once decoupled (they do not move, and evaluating the field only
-        where it matters keeps the step cheap). ``rows`` [M]: only those Gaussians (``means`` is then theirs)."""
+        """v [N, 3] in world units per physics time unit at dataset time ``t`` (a float, or [N]: one per row), at the
+        Gaussians' positions then (``means``, or ``at(t)``'s); zero for static Gaussians once decoupled (they do not
+        move, and evaluating the field only where it matters keeps the step cheap). ``rows`` [M]: only those Gaussians
+        (``means`` is then theirs)."""
         field = self._field()
         means = self.at(t, rows=rows).means if means is None else means
         index = self.gaussians.particle_index
@@ -216,7 +222,8 @@ class DynamicGaussians:
             return field(means, t, index)[0]
         v = means.new_zeros(means.shape)
         if moving.shape[0]:
-            v = v.index_copy(0, moving, field(means.index_select(0, moving), t, index.index_select(0, moving))[0])
+            times = t.reshape(-1).index_select(0, moving) if isinstance(t, Tensor) and t.numel() > 1 else t
+            v = v.index_copy(0, moving, field(means.index_select(0, moving), times, index.index_select(0, moving))[0])
         return v
 
     # ---- persistence -----------------------------------------------------------------------------------------

@@ -16,11 +16,11 @@ from pidg.physics.cmr import (
     sample_rows,
     stress_divergence,
 )
-from pidg.physics.config import KinematicTarget, PhysicsConfig, PhysicsKind
+from pidg.physics.config import KinematicTarget, KinematicTimes, PhysicsConfig, PhysicsKind
 from pidg.physics.consistency import particle_step_velocity, particle_velocity, velocity_mismatch
 
 __all__ = [
-    "STAT_NAMES", "CMRResult", "JetField", "KinematicTarget", "PhysicsConfig", "PhysicsKind", "cmr_loss",
+    "STAT_NAMES", "CMRResult", "JetField", "KinematicTarget", "KinematicTimes", "PhysicsConfig", "PhysicsKind", "cmr_loss",
     "convective_acceleration", "material_acceleration", "momentum_residual", "particle_step_velocity",
     "particle_velocity", "sample_rows", "stress_divergence", "velocity_mismatch",
 ]

@@ -17,30 +17,38 @@ turns or accelerates.
 """
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from pidg.models.dynamic_gaussians import DynamicGaussians
 from pidg.models.time_axis import TimeAxis
 
 
-def particle_velocity(model: DynamicGaussians, t: float, rows: Tensor | None = None) -> Tensor:
-    """The deformation's velocity [N, 3] of the particles ``rows`` (all: None) at dataset time ``t``, over half a
-    training-frame interval either side, in world units per physics time unit (tau = t * S: dx/dtau = dx/dt / S)."""
+def particle_velocity(model: DynamicGaussians, t: float | Tensor, rows: Tensor | None = None) -> Tensor:
+    """The deformation's velocity [N, 3] of the particles ``rows`` (all: None) at dataset time ``t`` (a float, or
+    [N]: a time per particle), over half a training-frame interval either side, in world units per physics time unit
+    (tau = t * S: dx/dtau = dx/dt / S)."""
     time_axis = model.time_axis
     return model.motion_velocity(t, 0.5 * time_axis.frame_interval, rows) / time_axis.physics_per_dataset
 
 
-def particle_step_velocity(model: DynamicGaussians, t: float, means: Tensor, rows: Tensor | None = None) -> Tensor:
-    """The deformation's move [N, 3] of the particles ``rows`` (all: None), at ``means`` at dataset time ``t``, over
-    the next training-frame interval, as a velocity in world units per physics time unit: (x(t + dt) - x(t)) / dt.
+def particle_step_velocity(model: DynamicGaussians, t: float | Tensor, means: Tensor, rows: Tensor | None = None) -> Tensor:
+    """The deformation's move [N, 3] of the particles ``rows`` (all: None), at ``means`` at dataset time ``t`` (a
+    float, or [N]: a time per particle), over the next training-frame interval, as a velocity in world units per
+    physics time unit: (x(t + dt) - x(t)) / dt.
     Where that interval leaves the recording (t + dt > 1: the last training frame) the interval is the one that ends
     at t = 1, as :meth:`DynamicGaussians.motion_velocity` stays in [0, 1]: past the end no image supervises the
     deformation, and its move there taught v at the last frame about half the true speed on the generated kinematic
     scene (docs/motion.md, "Holding the tracks")."""
     time_axis = model.time_axis
     dt = time_axis.frame_interval
-    end = min(t + dt, 1.0)
-    start = means if end == t + dt else model.at(end - dt, rows=rows).means
+    if isinstance(t, Tensor):
+        end = (t + dt).clamp_max(1.0)
+        inside = (end == t + dt)[:, None]
+        start = means if bool(inside.all()) else torch.where(inside, means, model.at(end - dt, rows=rows).means)
+    else:
+        end = min(t + dt, 1.0)
+        start = means if end == t + dt else model.at(end - dt, rows=rows).means
     return (model.at(end, rows=rows).means - start) / time_axis.to_physics(dt)
 
 

@@ -269,9 +269,15 @@ class ParticleVelocityLoss(_PhysicsParticleTerm):
         mismatch = velocity_mismatch(v, target, model.time_axis, field.normalize.half_extent)
         return self.config.lambda_kinematic * mismatch, {"kinematic": float(mismatch.detach())}
 
-    def _sample_time(self, inputs: StepInputs, rows: Tensor) -> tuple[float, Tensor]:
+    def _sample_time(self, inputs: StepInputs, rows: Tensor) -> tuple[float | Tensor, Tensor]:
         """The dataset time this step teaches v at and the particles ``rows`` there (detached): the frame's time,
-        or with ``kinematic_time_jitter`` a time drawn around it (``PhysicsConfig.kinematic_time_jitter``)."""
+        or with ``kinematic_time_jitter`` a time drawn around it (``PhysicsConfig.kinematic_time_jitter``), or with
+        ``kinematic_times recording`` a time [M] per particle drawn over the whole recording."""
+        if self.config.kinematic_times == "recording":
+            means = inputs.state.means
+            times = torch.rand(len(rows), generator=self.generator, dtype=torch.float64).to(means.device, means.dtype)
+            with torch.no_grad():
+                return times, inputs.model.at(times, rows=rows).means
         t, jitter = inputs.frame.time, self.config.kinematic_time_jitter
         if jitter > 0:
             offset = (float(torch.rand((), generator=self.generator)) - 0.5) * jitter * inputs.model.time_axis.frame_interval

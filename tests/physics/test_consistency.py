@@ -157,3 +157,55 @@ def test_time_jitter_teaches_v_at_a_time_drawn_between_the_training_frames(tmp_p
         with torch.no_grad():
             target = model.motion_velocity(t, 0.5 * dt)
         torch.testing.assert_close(loss.detach(), _independent_mismatch(model, t, target), rtol=1e-4, atol=1e-7)
+
+
+def test_recording_times_teach_each_particle_at_a_time_of_its_own_over_the_whole_recording(tmp_path):
+    """``kinematic_times recording``: each sampled particle at its own time drawn uniformly over [0, 1], deformed
+    there, against the deformation's central velocity at that time (one-sided at the ends), written out per particle
+    from the model's parts; the frame the step renders does not matter."""
+    trainer, term = _trained_term(tmp_path, kinematic_times="recording")
+    model, frame = trainer.model, trainer.scene.train[2]
+    h = 0.5 * model.time_axis.frame_interval
+    state = model.at(frame.time)
+    replay = torch.Generator()
+    replay.set_state(term.generator.get_state())  # all 300 particles are sampled: the times are the only draws
+    times = torch.rand(model.num_gaussians, generator=replay, dtype=torch.float64)
+    loss, _ = term.loss(StepInputs(0, frame, model, state, True), model.render_state(state, frame.camera), None)
+    with torch.no_grad():
+        v, target = [], []
+        for i, t in enumerate(times.float().tolist()):  # one particle at a time, at float times: another path
+            row = torch.tensor([i])
+            means = model.at(t, rows=row).means
+            v.append(model.material_field(means, t, model.gaussians.particle_index[row])[0])
+            t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
+            target.append((model.at(t1, rows=row).means - model.at(t0, rows=row).means) / (t1 - t0))
+        expected = velocity_mismatch(torch.cat(v), torch.cat(target) / model.time_axis.physics_per_dataset,
+                                     model.time_axis, model.material_field.normalize.half_extent)
+    torch.testing.assert_close(loss.detach(), expected, rtol=1e-4, atol=1e-7)
+    assert float(times.min()) < 0.1 and float(times.max()) > 0.9  # spread over the recording, not around the frame
+    with pytest.raises(ValueError, match="kinematic_time_jitter.*kinematic_times frame"):
+        dataclasses.replace(trainer.config.physics, kinematic_time_jitter=1.0)
+
+
+def test_targets_at_times_of_their_own_are_each_particles_as_at_its_single_time(tmp_path):
+    """Both targets with a time per particle (``kinematic_times recording``) give each particle what the single-time
+    path gives it at its time: the central velocity one-sided near the ends, the forward move over the last interval
+    inside the recording where the next one leaves it."""
+    from pidg.physics.consistency import particle_step_velocity, particle_velocity
+
+    trainer, _ = _trained_term(tmp_path)
+    model = trainer.model
+    dt = model.time_axis.frame_interval
+    rows = torch.tensor([0, 5, 17, 40])
+    times = torch.tensor([0.0, 0.003, 0.31, 0.995])  # near the start, inside, past the last interval's start
+    with torch.no_grad():
+        means = model.at(times, rows=rows).means
+        central = particle_velocity(model, times, rows)
+        forward = particle_step_velocity(model, times, means, rows)
+        for i, (t, r) in enumerate(zip(times.tolist(), rows)):
+            alone = model.at(t, rows=r[None]).means
+            torch.testing.assert_close(central[i:i + 1], particle_velocity(model, t, r[None]), rtol=1e-4, atol=1e-6)
+            torch.testing.assert_close(forward[i:i + 1], particle_step_velocity(model, t, alone, r[None]), rtol=1e-4,
+                                       atol=1e-6)
+        naive = (model.at(0.995 + dt, rows=rows[3:]).means - means[3:]) / model.time_axis.to_physics(dt)
+    assert not torch.allclose(forward[3:], naive, rtol=1e-3, atol=0)  # the move past the end is another
