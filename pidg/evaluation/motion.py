@@ -187,6 +187,10 @@ class VelocityScores:
     seen_flow_px: float | None = None
     seen_flow_at_training_times_px: float | None = None
     seen_flow_between_training_times_px: float | None = None
+    # |v - the deformation's velocity| / |v_gt| at the matched vertices (as the *_rel): how far the material field's v
+    # is from the particles it should move with, whatever the truth (docs/motion.md, "The material field's v lags the
+    # motion"); None without a material field
+    field_lag_rel: float | None = None
 
 
 @dataclass
@@ -292,8 +296,8 @@ class MotionEvaluation:
             f"velocity-flow EPE {_px(f.velocity_flow_epe)}{rule}, zero motion {_px(f.zero_motion_epe)}"
             + (f" ({_objects_text(f)})" if len(f.per_object) > 1 else "") + "; 3D velocity "
             f"(coverage {_pct(v.coverage)} within {v.radius:.3g} world units): relative error deformation {_num(v.deformation_rel)}, "
-            f"field v {_num(v.field_rel)}, zero {_num(v.zero_rel)}; along / across the camera rays (world units per "
-            f"unit of dataset time): deformation "
+            f"field v {_num(v.field_rel)} ({_num(v.field_lag_rel)} off the deformation's), zero {_num(v.zero_rel)}; "
+            f"along / across the camera rays (world units per unit of dataset time): deformation "
             f"{_num(v.deformation_along_ray)} / {_num(v.deformation_across_ray)}, field v {_num(v.field_along_ray)} / "
             f"{_num(v.field_across_ray)}, zero {_num(v.zero_along_ray)} / {_num(v.zero_across_ray)}; the true "
             f"velocity's own first-order flow {_px(v.truth_velocity_flow_px)} (second order "
@@ -1083,6 +1087,7 @@ def _velocity_scores(
         return _mean(along.norm(dim=-1)), _mean((err - along).norm(dim=-1))
 
     d_ray, f_ray, z_ray = along_across("deformation"), along_across("field"), along_across("v_gt")  # zero: error = -v_gt
+    lag = (cat("field") - cat("deformation")).norm(dim=-1) if gathered["field"] else None  # (v - v_gt) - (d - v_gt)
     return VelocityScores(
         times=times, vertex_samples=vertex_samples, matched=matched,
         coverage=ratio_or_none(matched, vertex_samples), radius=radius, fd_step=h, speed_floor=floor,
@@ -1099,5 +1104,6 @@ def _velocity_scores(
         seen_flow_px=_mean(cat("seen_flow")),
         seen_flow_at_training_times_px=_mean(cat("seen_flow_at_training_times")),
         seen_flow_between_training_times_px=_mean(cat("seen_flow_between_training_times")),
+        field_lag_rel=None if lag is None else _mean(lag[counted] / speed[counted]),
     )
 

@@ -191,6 +191,7 @@ def test_matching_truth_gives_zero_error_and_zero_motion_gives_the_flow_size(tmp
     assert v.coverage == 1.0 and v.matched == v.vertex_samples == 2 * len(truth.vertices.positions[0])
     assert v.deformation_mae == pytest.approx(0.0, abs=1e-4) and v.field_mae == pytest.approx(0.0, abs=1e-5)
     assert v.deformation_rel == pytest.approx(0.0, abs=1e-4) and v.field_rel == pytest.approx(0.0, abs=1e-5)
+    assert v.field_lag_rel == pytest.approx(0.0, abs=1e-4)
     assert v.zero_mae == pytest.approx(float(VELOCITY.norm()), rel=1e-5) and v.zero_rel == 1.0
     assert v.zero_mae_per_frame == pytest.approx(v.zero_mae * DT)
     assert v.match_distance == pytest.approx(0.0, abs=1e-5) and v.fd_step == DT / 2
@@ -282,9 +283,21 @@ def test_a_wrong_field_velocity_shows_in_the_velocity_errors_only(tmp_path):
     assert v.deformation_rel == pytest.approx(0.0, abs=1e-4)
     assert v.field_rel == pytest.approx(1.0, rel=1e-5) and v.field_mae == pytest.approx(float(VELOCITY.norm()), rel=1e-5)
     assert v.field_mae_per_frame == pytest.approx(v.field_mae * DT)
+    assert v.field_lag_rel == pytest.approx(1.0, rel=1e-4)  # v is off the particles by their true speed
+    assert "field v 1.000 (1.000 off the deformation's)" in result.summary()
     # without a material field there is no velocity flow and no field error
     bare = evaluate_motion(plane_model(None), frames, truth)
     assert bare.flow.velocity_flow_epe is None and bare.velocity.field_rel is None and bare.flow.motion_flow_epe is not None
+    assert bare.velocity.field_lag_rel is None
+
+
+def test_a_field_that_follows_a_wrong_deformation_is_wrong_but_does_not_lag(tmp_path):
+    """The lag compares v with the deformation's velocity, not with the truth: vertices truly moving at twice the
+    speed the model's motion (and v with it) has make both errors a half, and no lag."""
+    truth, frames = write_truth(tmp_path, v_gt=2 * VELOCITY)
+    v = evaluate_motion(plane_model(VELOCITY / S), frames, truth).velocity
+    assert v.deformation_rel == pytest.approx(0.5, rel=1e-3) and v.field_rel == pytest.approx(0.5, rel=1e-3)
+    assert v.field_lag_rel == pytest.approx(0.0, abs=1e-4)
 
 
 def two_faces_truth(root, shift=(0.3, -0.4), gap=0.1, times=(0.25, 0.5)):
