@@ -164,7 +164,7 @@ class DynamicGaussians:
             raise ValueError(f"motion_velocity: the step h must be > 0, got {h}")
         if isinstance(t, Tensor):
             t0, t1 = (t - h).clamp_min(0.0), (t + h).clamp_max(1.0)
-            span: float | Tensor = (t1 - t0)[:, None]
+            span: float | Tensor = (t1 - t0).reshape(-1, 1)
         else:
             t0, t1 = max(t - h, 0.0), min(t + h, 1.0)
             span = t1 - t0

@@ -44,7 +44,7 @@ def particle_step_velocity(model: DynamicGaussians, t: float | Tensor, means: Te
     dt = time_axis.frame_interval
     if isinstance(t, Tensor):
         end = (t + dt).clamp_max(1.0)
-        inside = (end == t + dt)[:, None]
+        inside = (end == t + dt).reshape(-1, 1)
         start = means if bool(inside.all()) else torch.where(inside, means, model.at(end - dt, rows=rows).means)
     else:
         end = min(t + dt, 1.0)

@@ -11,7 +11,7 @@ import pidg  # noqa: F401  (before torch is used)
 from pidg.data import DataConfig, load_scene
 from pidg.data.procedural import ProceduralSceneConfig, write_procedural_dataset
 from pidg.models.time_axis import TimeAxis
-from pidg.physics import velocity_mismatch
+from pidg.physics import particle_step_velocity, particle_velocity, velocity_mismatch
 from pidg.training.config import TrainConfig, apply_preset
 from pidg.training.losses import StepInputs
 from pidg.training.trainer import Trainer
@@ -187,12 +187,10 @@ def test_recording_times_teach_each_particle_at_a_time_of_its_own_over_the_whole
         dataclasses.replace(trainer.config.physics, kinematic_time_jitter=1.0)
 
 
-def test_targets_at_times_of_their_own_are_each_particles_as_at_its_single_time(tmp_path):
+def test_targets_at_a_time_per_particle_match_the_single_time_path(tmp_path):
     """Both targets with a time per particle (``kinematic_times recording``) give each particle what the single-time
     path gives it at its time: the central velocity one-sided near the ends, the forward move over the last interval
     inside the recording where the next one leaves it."""
-    from pidg.physics.consistency import particle_step_velocity, particle_velocity
-
     trainer, _ = _trained_term(tmp_path)
     model = trainer.model
     dt = model.time_axis.frame_interval
