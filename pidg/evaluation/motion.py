@@ -345,6 +345,8 @@ UNITS = {
     "flow": "pixels of the run's images, from t to t + frame_interval, camera held fixed",
     "velocity": "world units per unit of dataset time (x frame_interval: *_per_frame, world units per frame interval)",
     "radius": "world units",
+    "relative": "velocity.*_rel (field_lag_rel too): a share of the true speed |v_gt| (0: right; 1: as far off as "
+                "standing still)",
 }
 
 

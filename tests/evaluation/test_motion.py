@@ -198,6 +198,7 @@ def test_matching_truth_gives_zero_error_and_zero_motion_gives_the_flow_size(tmp
     # typed results -> json, with the units
     data = json.loads(json.dumps(result.to_dict()))
     assert data["flow"]["pixels"] == SCORED_PIXELS and "world units per unit of dataset time" in data["units"]["velocity"]
+    assert "share of the true speed" in data["units"]["relative"]
     assert [r["view"] for r in data["per_frame"]] == ["test/r_0000", "test/r_0001"]
     assert set(result.columns()) == {"gt_motion_flow_epe", "gt_velocity_flow_epe", "gt_zero_motion_epe",
                                      "gt_velocity_rel_deformation", "gt_velocity_rel_field", "gt_coverage",
