@@ -228,22 +228,27 @@ class TrainConfig:
         return self.physics.enabled or self.flow.enabled
 
 
+#: What a variant without LPFM sets: no flow loss, and nothing else made from the optical flow either (the rigid
+#: tracks are chained through it, so a base config's ``optim.motion_start rigid_tracks`` and tracks term go with it).
+#: The defaults already are so; a base config that tracks bodies gets its w/o-LPFM row without the flow's tracks.
+WITHOUT_FLOW: dict[str, str] = {"flow.kind": "none", "optim.motion_start": "rest", "optim.lambda_tracks": "0"}
+
 #: The paper's ablation rows (and two more), each a set of option overrides on one base config: rows differ
 #: only by these options.
 ABLATION_VARIANTS: dict[str, dict[str, str]] = {
-    "base": {"physics.kind": "none", "flow.kind": "none"},  # PIDG w/o (CMR + LPFM)
-    "cmr": {"physics.kind": "cmr", "flow.kind": "none"},  # PIDG w/o LPFM
+    "base": {"physics.kind": "none", **WITHOUT_FLOW},  # PIDG w/o (CMR + LPFM)
+    "cmr": {"physics.kind": "cmr", **WITHOUT_FLOW},  # PIDG w/o LPFM
     "full": {"physics.kind": "cmr", "flow.kind": "lpfm"},  # PIDG
-    "nostress": {"physics.kind": "cmr", "material.stress": "false", "flow.kind": "none"},  # sigma == 0 ablation
+    "nostress": {"physics.kind": "cmr", "material.stress": "false", **WITHOUT_FLOW},  # sigma == 0 ablation
     "lpfm": {"physics.kind": "none", "flow.kind": "lpfm"},  # flow matching without the momentum residual
     # the paper's plug-in rows: the material field with L_CMR on another deformation network (Deformable-3DGS's MLP),
     # trained as that method is: the Gaussians fit a static scene first, then the MLP at a lower rate. Without the
     # warm-up the MLP learns within ~20 steps a global translation that moves the random-init floaters, and with them
     # every Gaussian, out of view (bouncingballs 200x200: mean displacement ~2,000 world units at lr 2e-3, ~10 at 1e-4).
     "mlp": {"deformation.kind": "mlp", "optim.deformation_lr": "1e-4", "optim.static_warmup": "500",
-            "physics.kind": "none", "flow.kind": "none"},
+            "physics.kind": "none", **WITHOUT_FLOW},
     "mlp_cmr": {"deformation.kind": "mlp", "optim.deformation_lr": "1e-4", "optim.static_warmup": "500",
-                "physics.kind": "cmr", "flow.kind": "none"},
+                "physics.kind": "cmr", **WITHOUT_FLOW},
 }
 
 #: The cpu preset's schedule for D-NeRF scenes (``layout`` "dnerf"), chosen on the validation split of bouncingballs

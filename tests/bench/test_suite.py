@@ -173,6 +173,21 @@ def test_the_ray_executor_runs_jobs_as_tasks_and_keeps_the_others_when_one_fails
         ray.shutdown()
 
 
+def test_rows_without_lpfm_leave_out_what_is_made_from_the_flow(scenes_root, tmp_path):
+    """The rigid-body setting tracks bodies through the optical flow: its w/o-LPFM rows (and every row without the
+    flow) start from rest without the tracks term, so they neither read the flow nor stop at the missing cache; the
+    full row keeps the base config's start and term."""
+    base = tiny_train_config()
+    base = dataclasses.replace(base, optim=dataclasses.replace(base.optim, motion_start="rigid_tracks", lambda_tracks=0.3))
+    jobs = {j.variant: j.config for j in make_jobs([scenes_root / "alpha"], ["base", "cmr", "full", "nostress", "mlp_cmr"],
+                                                   base, tmp_path / "jobs", None)}
+    for variant in ("base", "cmr", "nostress", "mlp_cmr"):
+        config = jobs[variant]
+        assert (config["flow"]["kind"], config["optim"]["motion_start"], config["optim"]["lambda_tracks"]) == ("none", "rest", 0.0)
+    full = jobs["full"]
+    assert (full["flow"]["kind"], full["optim"]["motion_start"], full["optim"]["lambda_tracks"]) == ("lpfm", "rigid_tracks", 0.3)
+
+
 def test_seeds_give_one_job_each_and_a_spread_per_scene_and_variant(scenes_root, tmp_path):
     """``pidg bench quality --seeds``: one run per seed in its own folder, trained with that seed (different
     Gaussians from the first step: a different run); the spread line is the mean, sample sd and range of the rows."""
