@@ -14,12 +14,14 @@ point's move from one training frame to the next against the true move (what a f
 moves (0 = right, 1 = as far off as not moving); the move error, each point's move against the move its body truly
 makes at the point's tracked position (the velocity a flow sees where the track is: a track that has drifted to
 another part of its body but moves with it scores 0 here and not in the step error, which a rolling body's drift in
-orientation fills); how many training intervals the body was tracked through; and the share of them in which a
-motion was fitted (the others carried at rest or at constant velocity).
+orientation fills); how many training intervals the body was tracked through; the share of them in which a
+motion was fitted (the others carried at rest or at constant velocity); and how many chains the tracker made for it
+and how alike its points look from frame to frame in the one it kept (its own check, which reads no truth).
 """
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -48,6 +50,8 @@ class BodyScore:
     on_object: float  # share of its points whose nearest true vertex is on that object
     tracked_intervals: int  # intervals it was tracked through (of the run's training intervals)
     fitted: float  # share of those in which a motion was fitted (not carried at rest or constant velocity)
+    chains: int  # chains the tracker made for it (more than 1 where its first went wrong: RigidTrackConfig.attempts)
+    look: float | None  # how alike its kept chain's points look from frame to frame (chain_look's mean; None: unseen)
     error: float | None  # mean position error over the tracked frames, world units
     relative: float | None  # pooled error / pooled true travel from the first frame
     step_relative: float | None  # pooled error of the frame-to-frame moves / pooled true moves
@@ -148,6 +152,7 @@ def score_tracks(
             body=bi, object=truth.objects[main].name if truth.objects[main].kind in RIGID_KINDS else "",
             points=int(rows.sum()), on_object=float(counts[main]) / max(int(rows.sum()), 1), tracked_intervals=tracked,
             fitted=float(tracks.found[:tracked, bi].float().mean()) if tracked > 0 else 0.0,
+            chains=int(tracks.chains[bi]), look=None if math.isnan(float(tracks.look[bi])) else float(tracks.look[bi]),
             error=float(body_error.mean()) if len(body_error) else None,
             relative=_share(body_error, body_travel),
             step_relative=_share(step_error[:, rows][step_scored[:, rows]], step[:, rows][step_scored[:, rows]]),
@@ -198,12 +203,13 @@ def format_result(result: TrackBenchResult) -> str:
              f"intervals, {result.seconds:.0f} s; relative position error {num(result.relative)}, step error "
              f"{num(result.step_relative)}, move error {num(result.move_relative)} (0 = the truth, 1 = no better "
              f"than standing still), {100 * result.tracked_share:.0f} % of (point, frame) entries tracked",
-             "| body | object | points | on it | tracked intervals | fitted | error (world) | relative | step | move | "
-             "error (world) grows most in |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| body | object | points | on it | tracked intervals | fitted | chains | look | error (world) | relative | "
+             "step | move | error (world) grows most in |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for b in result.bodies:
         lines.append(f"| {b.body} | {b.object or '(not rigid)'} | {b.points} | {100 * b.on_object:.0f} % | "
-                     f"{b.tracked_intervals}/{result.intervals} | {100 * b.fitted:.0f} % | {num(b.error)} | "
+                     f"{b.tracked_intervals}/{result.intervals} | {100 * b.fitted:.0f} % | {b.chains} | {num(b.look)} | "
+                     f"{num(b.error)} | "
                      f"{num(b.relative)} | {num(b.step_relative)} | {num(b.move_relative)} | {_worst(b)} |")
     if result.not_scored:
         lines.append("not scored (not rigid): " + ", ".join(result.not_scored))

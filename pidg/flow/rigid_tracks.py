@@ -28,12 +28,16 @@ and motions chain without limit. So:
    small, fast-turning bodies' motion (12 % on the generated rigid scene), the images do not; where the flow failed
    altogether (a fast motion), every candidate the surface allows is refined so and the best-looking one chosen;
 7. the sides of a body the first frame does not see join from the later frames: points of each frame's moving
-   surface connected to a tracked body, carried back to the first frame by the inverse of its motion, then along it.
+   surface connected to a tracked body, carried back to the first frame by the inverse of its motion, then along it;
+8. the chain is chaotic (a small change in one interval reshuffles every later draw), so a body whose chain went
+   wrong (its points look anti-correlated with themselves over some interval: :func:`chain_look`) is chained again
+   with new RANSAC draws, up to ``attempts`` chains, and the one whose points look most alike is kept.
 
 Against the true motion (``pidg bench rigid-tracks``; docs/motion.md, "Rigid-body tracks that hold", "Tracks fitted
-point to plane" and "Tracks fitted to the images"): the rigid scene's tracks move 0.13-0.17 of the true moves off in
-three of five seeds and 0.32-0.44 in two, where a body was lost in a fast phase (0.25-0.29 without the look; 0.27-0.36
-with a Kabsch fit), the kinematic head's 0.004 through all 44 intervals (with the flow alone lost at interval 16).
+point to plane", "Tracks fitted to the images" and "Chains that went wrong"): the rigid scene's tracks move 0.13-0.22
+of the true moves off in ten of eleven seeds and 0.31 in one, whose box goes wrong without its look telling (0.13-0.44
+with one chain, where boxes went wrong in a fast phase; 0.25-0.29 without the look; 0.27-0.36 with a Kabsch fit), the
+kinematic head's 0.004 through all 44 intervals (with the flow alone lost at interval 16).
 
 Positions are world units, times the dataset's [0, 1]; everything runs on the CPU in float64.
 """
@@ -101,6 +105,14 @@ class RigidTrackConfig:
     """A photometric refinement is kept only if the body looks at most this much less alike in the two frames
     (:func:`look_agreement`: a correlation times the share of the body still seen, at most 1) than with the motion
     it started from: a fit that slid into a wrong minimum shows there."""
+    attempts: int = 3
+    """Chains made at most for a body whose chain went wrong (its points look anti-correlated with themselves over
+    some interval: :func:`chain_look`), each drawing its RANSAC samples anew; of them the one whose points look most
+    alike from each frame to the next is kept. The chain is chaotic (a small change in one interval reshuffles every
+    later draw), so a body tracked wrong in one chain is often right in another: on the generated rigid scene, over
+    eleven tracker seeds, three boxes that went wrong so (move error 0.54, 0.34, 0.92) came to 0.06-0.07
+    (docs/motion.md, "Chains that went wrong"). 1: one chain (the tracker before 2026-12-01); bodies whose chain did
+    not go wrong cost nothing more."""
 
 
 @dataclass
@@ -113,6 +125,8 @@ class RigidTracks:
     body: Tensor  # [P] long: the body of each point
     static: Tensor  # [S, 3] the first frame's lifted still surface
     found: Tensor  # [T - 1, B] bool: a motion was fitted for body b over interval k (not extrapolated)
+    chains: Tensor  # [B] long: chains made for body b (more than 1 where its first went wrong: RigidTrackConfig.attempts)
+    look: Tensor  # [B] float64: how alike its kept chain's points look from frame to frame (chain_look's mean)
 
 
 def lifted_pairs(pair: FlowPair, moving: bool = True) -> tuple[Tensor, Tensor]:
@@ -386,16 +400,26 @@ def look_agreement(
     them in view can match by chance); at most 1, for a right motion of a body whose look does not change and which
     stays in view; NaN when fewer than ``_MIN_LOOK_POINTS`` are seen. Unlike the photometric fit's cost it is blind
     to a change of brightness and contrast, so it can judge that fit."""
-    y = x @ rotation.T + shift
+    correlation, seen = look_correlation(x, x @ rotation.T + shift, frame0, frame1, images.plain, tolerance)
+    return correlation * seen
+
+
+def look_correlation(
+    x: Tensor, y: Tensor, frame0: Frame, frame1: Frame, plain: tuple[Tensor, Tensor], tolerance: float,
+) -> tuple[float, float]:
+    """The zero-mean normalised cross-correlation of surface points' colours at ``x`` [N, 3] in ``frame0`` and at
+    ``y`` [N, 3] in ``frame1``, on the images ``plain`` (both blurred by ``_LOOK_BLUR`` px), over the points both
+    frames see (within ``tolerance``, world units), and the share of the points those are; NaN for the correlation
+    when fewer than ``_MIN_LOOK_POINTS`` are seen."""
     both = _seen(x, frame0, tolerance) & _seen(y, frame1, tolerance)
+    seen = float(both.double().mean()) if len(both) else 0.0
     if int(both.sum()) < _MIN_LOOK_POINTS:
-        return math.nan
+        return math.nan, seen
     looks = []
-    for frame, image, points in ((frame0, images.plain[0], x[both]), (frame1, images.plain[1], y[both])):
+    for frame, image, points in ((frame0, plain[0], x[both]), (frame1, plain[1], y[both])):
         colours = sample_bilinear(image, frame.camera.project_points(points)[0])[0]
         looks.append(colours - colours.mean(0))
-    correlation = float((looks[0] * looks[1]).sum() / (looks[0].norm() * looks[1].norm()).clamp_min(1e-12))
-    return correlation * float(both.double().mean())
+    return float((looks[0] * looks[1]).sum() / (looks[0].norm() * looks[1].norm()).clamp_min(1e-12)), seen
 
 
 def _constant_velocity(x: Tensor, rotation: Tensor, shift: Tensor, s: float) -> tuple[Tensor, Tensor]:
@@ -643,51 +667,46 @@ def _later_surfaces(
     return out, out_known, owner
 
 
-def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: torch.Generator) -> RigidTracks:
-    """Track the first training frame's moving surface through every training interval as rigid bodies (module
-    docstring). ValueError naming the frame when a frame has no depth or motion mask, or the first frame shows no
-    moving surface with depth."""
-    frames = cache.frames
-    for frame in frames:
-        if frame.depth is None or frame.mask is None:
-            raise ValueError(f"rigid-body tracks need depth maps and motion masks: {frame.name or frame.path} has no "
-                             f"{'depth' if frame.depth is None else 'motion mask'}")
-    cache = cache.to("cpu", [f.to("cpu") for f in frames])
-    frames = cache.frames
-    if len(cache) == 0:
-        raise ValueError("rigid-body tracks need at least two training frames")
-    first, _ = lifted_pairs(cache.pair(0))
-    if len(first) < config.min_body_points:
-        raise ValueError(f"rigid-body tracks: the first training frame ({frames[0].name}) shows {len(first)} moving "
-                         "pixels with depth and a consistent flow; too few to track")
-    f0 = frames[0]
-    footprint = float(f0.depth[f0.mask & (f0.depth > 0)].double().median()) / f0.camera.fx  # world units a pixel
-    link, inlier, reach = config.link * footprint, config.inlier * footprint, config.reach * footprint
-    start = first[torch.randperm(len(first), generator=generator)[:config.points]]
-    body = _bodies(start, first, link, config.min_body_points)
-    n_bodies = int(body.max()) + 1
-    still = (~f0.mask) & (f0.depth > 0)
-    h, w = still.shape
-    pixels = pixel_centers(h, w, torch.float64)[still]
-    pick = torch.randperm(len(pixels), generator=generator)[:config.static_points]
-    static = unproject_points(pixels[pick], f0.depth.double()[still][pick], f0.camera)
+@dataclass(frozen=True)
+class _Interval:
+    """What every chain reads of one training interval, made once: its flow pair, the pair's lifted moving flow
+    (:func:`lifted_pairs`) and frame t+1's moving surface (:func:`moving_surface`)."""
 
+    pair: FlowPair
+    a: Tensor  # [K, 3] the lifted pairs' starts (world units)
+    b: Tensor  # [K, 3] their ends
+    surface: tuple[Tensor, Tensor]  # frame t+1's moving surface: points [M, 3] and normals [M, 3]
+
+
+@dataclass
+class _Chain:
+    """One chain of the bodies' motions through the recording (:func:`_chain`)."""
+
+    positions: Tensor  # [T, N, 3] the first frame's tracked points, carried (world units)
+    known: Tensor  # [T, N] bool
+    found: Tensor  # [T - 1, B] bool: a motion was fitted for body b over interval k
+
+
+def _chain(
+    intervals: list[_Interval], first_surface: Tensor, start: Tensor, body: Tensor, footprint: float,
+    config: RigidTrackConfig, generator: torch.Generator,
+) -> _Chain:
+    """Chain every body's motion through ``intervals`` from its points ``start`` [N, 3] (steps 3-6 of the module
+    docstring); ``first_surface`` is the first frame's moving surface, ``footprint`` the world units a pixel spans."""
+    link, inlier, reach = config.link * footprint, config.inlier * footprint, config.reach * footprint
+    n_bodies = int(body.max()) + 1
     x, alive = start.clone(), torch.ones(n_bodies, dtype=torch.bool)
     rest = (torch.eye(3, dtype=x.dtype), torch.zeros(3, dtype=x.dtype))
     gaps = [0] * n_bodies
     last: dict[int, tuple[Tensor, Tensor, float]] = {}  # each body's last motion and its interval's length
     positions, known, found = [x], [alive[body]], []
-    surfaces = [first]  # each frame's moving surface (the first's unused by the later-surface points)
-    previous = moving_surface(f0)[0]  # frame k's moving surface, each body's part of it fitted photometrically
-    for k in range(len(cache)):
-        pair = cache.pair(k)
-        a, b = lifted_pairs(pair)
+    previous = first_surface  # frame k's moving surface, each body's part of it fitted photometrically
+    for interval in intervals:
+        pair, a, b, surface = interval.pair, interval.a, interval.b, interval.surface
         distance, owner = torch.zeros(0, dtype=x.dtype), torch.zeros(0, dtype=torch.long)
         if len(a):
             distance, nearest = _nearest(a, x)
             owner = body[nearest]
-        surface = moving_surface(pair.frame1)
-        surfaces.append(surface[0])
         continued = {bi: _constant_velocity(x[body == bi], rotation, shift, pair.dt / dt_last)  # the last velocity
                      for bi, (rotation, shift, dt_last) in last.items() if alive[bi]}
         claimed = _surface_owners(x, body, alive, continued, surface[0])
@@ -727,8 +746,92 @@ def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: to
         positions.append(x)
         known.append(alive[body])
         found.append(found_k)
-    positions, known = torch.stack(positions), torch.stack(known)
-    later = _later_surfaces(positions, known, body, surfaces, link, config.later_points, generator)
+    return _Chain(torch.stack(positions), torch.stack(known), torch.stack(found))
+
+
+def chain_look(
+    positions: Tensor, known: Tensor, body: Tensor, frames: list[Frame], tolerance: float,
+) -> tuple[Tensor, Tensor]:
+    """How alike each body's tracked points look from each frame to the next: per interval the correlation of their
+    colours (:func:`look_correlation`) over its points known at both ends and seen in both frames, and of those
+    correlations per body their mean and their lowest ([B] each; NaN for a body never seen so). A body tracked right
+    looks alike all along (the generated rigid scene: means 0.87-0.95, lowest 0.17-0.85); a chain that went wrong
+    puts its points on other parts of the texture, and over some interval they look anti-correlated with themselves
+    (lowest -0.20 and -0.30 for the boxes that went wrong). The correlation, not :func:`look_agreement`'s product
+    with the share seen: that share, which turning and occlusion change, outweighed it. ``positions`` [T, N, 3] and
+    ``known`` [T, N] are the points at ``frames``' times, ``tolerance`` world units."""
+    n_bodies = int(body.max()) + 1
+    looks: list[list[float]] = [[] for _ in range(n_bodies)]
+    plain = [blurred(frame.image.double(), _LOOK_BLUR) for frame in frames]
+    for k in range(len(frames) - 1):
+        for bi in range(n_bodies):
+            rows = (body == bi) & known[k] & known[k + 1]
+            if int(rows.sum()) >= _MIN_LOOK_POINTS:
+                correlation, _ = look_correlation(positions[k, rows], positions[k + 1, rows], frames[k], frames[k + 1],
+                                                  (plain[k], plain[k + 1]), tolerance)
+                if not math.isnan(correlation):
+                    looks[bi].append(correlation)
+    mean = torch.tensor([sum(c) / len(c) if c else math.nan for c in looks], dtype=torch.float64)
+    lowest = torch.tensor([min(c) if c else math.nan for c in looks], dtype=torch.float64)
+    return mean, lowest
+
+
+def track_rigid_bodies(cache: FlowCache, config: RigidTrackConfig, generator: torch.Generator) -> RigidTracks:
+    """Track the first training frame's moving surface through every training interval as rigid bodies (module
+    docstring; a body whose chain went wrong is chained again, up to ``config.attempts`` times in all, and the chain
+    that looks most alike kept: :func:`chain_look`).
+    ValueError naming the frame when a frame has no depth or motion mask, or the first frame shows no moving surface
+    with depth."""
+    frames = cache.frames
+    for frame in frames:
+        if frame.depth is None or frame.mask is None:
+            raise ValueError(f"rigid-body tracks need depth maps and motion masks: {frame.name or frame.path} has no "
+                             f"{'depth' if frame.depth is None else 'motion mask'}")
+    if config.attempts < 1:
+        raise ValueError(f"rigid-body tracks: attempts must be at least 1, got {config.attempts}")
+    cache = cache.to("cpu", [f.to("cpu") for f in frames])
+    frames = cache.frames
+    if len(cache) == 0:
+        raise ValueError("rigid-body tracks need at least two training frames")
+    first, _ = lifted_pairs(cache.pair(0))
+    if len(first) < config.min_body_points:
+        raise ValueError(f"rigid-body tracks: the first training frame ({frames[0].name}) shows {len(first)} moving "
+                         "pixels with depth and a consistent flow; too few to track")
+    f0 = frames[0]
+    footprint = float(f0.depth[f0.mask & (f0.depth > 0)].double().median()) / f0.camera.fx  # world units a pixel
+    start = first[torch.randperm(len(first), generator=generator)[:config.points]]
+    body = _bodies(start, first, config.link * footprint, config.min_body_points)
+    still = (~f0.mask) & (f0.depth > 0)
+    h, w = still.shape
+    pixels = pixel_centers(h, w, torch.float64)[still]
+    pick = torch.randperm(len(pixels), generator=generator)[:config.static_points]
+    static = unproject_points(pixels[pick], f0.depth.double()[still][pick], f0.camera)
+
+    intervals = []
+    for k in range(len(cache)):
+        pair = cache.pair(k)
+        intervals.append(_Interval(pair, *lifted_pairs(pair), moving_surface(pair.frame1)))
+    first_surface = moving_surface(f0)[0]
+    chain = _chain(intervals, first_surface, start, body, footprint, config, generator)
+    tolerance = 3 * config.inlier * footprint  # as the look judges a photometric fit (Look.refined)
+    mean, lowest = chain_look(chain.positions, chain.known, body, frames, tolerance)
+    chains = torch.ones(len(mean), dtype=torch.long)
+    for _ in range(config.attempts - 1):
+        wrong = torch.nonzero(lowest < 0).flatten().tolist()  # chains gone wrong (NaN, never seen: not wrong)
+        if not wrong:
+            break
+        seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+        other = _chain(intervals, first_surface, start, body, footprint, config, torch.Generator().manual_seed(seed))
+        other_mean, other_lowest = chain_look(other.positions, other.known, body, frames, tolerance)
+        for bi in wrong:
+            chains[bi] += 1
+            if bool(other_mean[bi] > mean[bi]):
+                rows = body == bi
+                chain.positions[:, rows], chain.known[:, rows] = other.positions[:, rows], other.known[:, rows]
+                chain.found[:, bi], mean[bi], lowest[bi] = other.found[:, bi], other_mean[bi], other_lowest[bi]
+    surfaces = [first] + [interval.surface[0] for interval in intervals]  # the first's unused by the later points
+    later = _later_surfaces(chain.positions, chain.known, body, surfaces, config.link * footprint, config.later_points,
+                            generator)
     times = torch.tensor([f.time for f in frames], dtype=torch.float64)
-    return RigidTracks(times, torch.cat([positions, later[0]], 1), torch.cat([known, later[1]], 1),
-                       torch.cat([body, later[2]]), static, torch.stack(found))
+    return RigidTracks(times, torch.cat([chain.positions, later[0]], 1), torch.cat([chain.known, later[1]], 1),
+                       torch.cat([body, later[2]]), static, chain.found, chains, mean)

@@ -101,8 +101,9 @@ def start_from_rigid_tracks(field: DeformationModel, cache: FlowCache, config: T
     optimizer = deformation_optimizer(field, fit_config(config, steps), scene_extent=1.0)
     loss = fit_field(field, targets.start, targets.positions, targets.times, optimizer, steps, generator, targets.known)
     logger.info("motion start: %d of %d rigid bodies fitted (%d points; %d tracked through all %d intervals; a motion "
-                "fitted on %.0f%% of the body-intervals, carried at rest or constant velocity on the others), with %d "
-                "still points, in %d steps (last loss %.4f world units), %.0f s", kept, n_bodies, int(use.sum()),
-                len(torch.unique(tracks.body[tracks.known[-1]])), intervals, 100.0 * float(tracks.found.float().mean()),
-                len(still), steps, loss, time.perf_counter() - began)
+                "fitted on %.0f%% of the body-intervals, carried at rest or constant velocity on the others; %d chained "
+                "again where the first chain went wrong), with %d still points, in %d steps (last loss %.4f world "
+                "units), %.0f s", kept, n_bodies, int(use.sum()), len(torch.unique(tracks.body[tracks.known[-1]])),
+                intervals, 100.0 * float(tracks.found.float().mean()), int((tracks.chains > 1).sum()), len(still),
+                steps, loss, time.perf_counter() - began)
     return targets

@@ -46,7 +46,8 @@ def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
     body = torch.tensor([0, 0, 1, 2])
     found = torch.ones(frames - 1, 3, dtype=torch.bool)
     found[0, 0] = False
-    tracks = RigidTracks(torch.tensor(truth.vertices.times), off, known, body, torch.zeros(0, 3), found)
+    tracks = RigidTracks(torch.tensor(truth.vertices.times), off, known, body, torch.zeros(0, 3), found,
+                         torch.tensor([1, 3, 1]), torch.tensor([0.9, 0.8, math.nan], dtype=torch.float64))
     relative, step_relative, move_relative, bodies, not_scored = score_tracks(tracks, truth)
     travel = (expected[:, :3] - expected[0, :3]).norm(dim=-1)
     scored = known[:, :3]
@@ -73,7 +74,9 @@ def test_tracks_off_by_a_set_amount_score_that_share_of_the_travel():
     assert (bodies[1].worst_interval, bodies[1].worst_fitted) == (0, True)
     assert math.isclose(bodies[1].worst_growth, 0.05, rel_tol=1e-5)
     assert bodies[2].worst_interval is None
+    assert [b.chains for b in bodies] == [1, 3, 1] and bodies[1].look == 0.8 and bodies[2].look is None
     text = format_result(TrackBenchResult("scene", 4, 1.0, relative, step_relative, move_relative, 0.95, bodies, not_scored))
+    assert "| 1 | cube | 1 | 100 % | 3/4 | 100 % | 3 | 0.800 |" in text
     assert "| 2 | (not rigid) |" in text and "not scored (not rigid): sheet" in text
     assert "interval 0 (+0.050, carried) |" in text and "interval 0 (+0.050, fitted) |" in text
 
@@ -94,7 +97,8 @@ def test_a_track_drifted_to_another_part_of_its_body_moves_right_there():
 
     positions = torch.stack([carried(corner if k <= 1 else opposite, k) for k in range(frames)])
     tracks = RigidTracks(torch.tensor(truth.vertices.times), positions, torch.ones(frames, 1, dtype=torch.bool),
-                         torch.zeros(1, dtype=torch.long), torch.zeros(0, 3), torch.ones(frames - 1, 1, dtype=torch.bool))
+                         torch.zeros(1, dtype=torch.long), torch.zeros(0, 3), torch.ones(frames - 1, 1, dtype=torch.bool),
+                         torch.ones(1, dtype=torch.long), torch.ones(1, dtype=torch.float64))
     _, step_relative, move_relative, bodies, _ = score_tracks(tracks, truth)
     moves = torch.stack([carried(corner, k + 1) - carried(corner, k) for k in range(frames - 1)])[:, 0]
     there = torch.stack([carried(corner if k <= 1 else opposite, k + 1) - carried(corner if k <= 1 else opposite, k)

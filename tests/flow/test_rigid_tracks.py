@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+import pidg.flow.rigid_tracks as rigid_tracks
 from pidg.data.scene import Frame
 from pidg.flow.preprocess import FlowCache
 from pidg.flow.rigid_tracks import (
@@ -16,6 +17,7 @@ from pidg.flow.rigid_tracks import (
     connected_labels,
     axis_angle_rotation,
     blurred,
+    chain_look,
     cross_matrix,
     lifted_pairs,
     look_agreement,
@@ -453,3 +455,59 @@ def test_a_flow_that_falls_short_is_made_up_by_the_look():
                                for k in range(8)]
     assert errors[False][-1] > 0.078
     assert max(errors[True]) < 0.026
+
+
+def test_chain_look_sees_a_chain_that_slipped_onto_another_part_of_its_texture():
+    """A body carried right looks alike from each frame to the next (near 1 on the exact synthetic images); one whose
+    chain slips 4 px at frame 4 (onto another part of its texture, as a chain gone wrong does) looks anti-correlated
+    with itself over that interval and less alike on average; one lost after frame 4 is scored on the intervals it was
+    tracked through; the other body's scores do not move."""
+    frames, cache = frames_and_cache(8, gap={})
+    start, _ = lifted_pairs(cache.pair(0))
+    body = (start[:, 0] > 0).long()
+    right = torch.stack([truth(start, k) for k in range(8)])
+    known = torch.ones(8, len(start), dtype=torch.bool)
+    mean, lowest = chain_look(right, known, body, frames, 0.3)
+    assert bool((lowest > 0.95).all()) and bool((mean <= 1.0).all())
+    slipped = right.clone()
+    left = body == 0
+    slipped[4:, left] += torch.tensor([0.3, -0.15, 0.0], dtype=torch.float64)  # 4 px (a pixel spans 0.078 here)
+    slipped_mean, slipped_lowest = chain_look(slipped, known, body, frames, 0.3)
+    assert float(slipped_lowest[0]) < 0 and float(slipped_mean[0]) < float(mean[0]) - 0.1
+    assert (float(slipped_mean[1]), float(slipped_lowest[1])) == (float(mean[1]), float(lowest[1]))
+    lost = known.clone()
+    lost[5:, left] = False
+    lost_mean, lost_lowest = chain_look(right, lost, body, frames, 0.3)
+    assert float(lost_mean[0]) == pytest.approx(float(mean[0]), abs=0.01) and float(lost_lowest[0]) > 0.95
+    never = known.clone()
+    never[1:, left] = False  # not tracked past the first frame: nothing to score
+    assert bool(chain_look(right, never, body, frames, 0.3)[0][0].isnan())
+
+
+def test_a_body_whose_chain_went_wrong_is_chained_again(monkeypatch):
+    """``attempts``: where a body's chain went wrong (here the first chain slips body 0 by 4 px at frame 3), the
+    tracker chains again with new RANSAC draws and keeps the chain that looks most alike: with two attempts body 0's
+    tracks are right, with one the wrong ones stay; a chain that did not go wrong is made once."""
+    frames, cache = frames_and_cache(6, gap={})
+    real, calls = rigid_tracks._chain, []
+
+    def first_goes_wrong(intervals, first_surface, start, body, *args):
+        chain = real(intervals, first_surface, start, body, *args)
+        calls.append(len(calls))
+        if len(calls) == 1 and slip:
+            chain.positions[3:, start[:, 0] < 0] += torch.tensor([0.3, -0.15, 0.0], dtype=torch.float64)
+        return chain
+
+    monkeypatch.setattr(rigid_tracks, "_chain", first_goes_wrong)
+    errors = {}
+    for slip, attempts, chains in ((True, 1, 1), (True, 2, 2), (False, 3, 1)):
+        calls.clear()
+        config = RigidTrackConfig(points=300, static_points=10, iterations=50, photometric=False, later_points=0,
+                                  attempts=attempts)
+        tracks = track_rigid_bodies(cache, config, torch.Generator().manual_seed(0))
+        assert len(calls) == chains
+        left = tracks.positions[0, :, 0] < 0
+        errors[slip, attempts] = float((tracks.positions[5] - truth(tracks.positions[0], 5)).norm(dim=1)[left].max())
+    assert errors[True, 1] > 0.3 and errors[True, 2] < 0.02 and errors[False, 3] < 0.02
+    with pytest.raises(ValueError, match="attempts must be at least 1"):
+        track_rigid_bodies(cache, RigidTrackConfig(attempts=0), torch.Generator())
